@@ -1,0 +1,54 @@
+"""PNG of a map with a team's trajectories, starts, goal and communication edges at a few instants."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def plot_episode(occupancy: np.ndarray, positions: np.ndarray, goal: np.ndarray, leader: int,
+                 out: str | Path, comm_radius: float = 15.0, instants: int = 4, title: str = "",
+                 crop: bool = True) -> Path:
+    """Draw one episode; positions (T+1, N, 2). Returns the written path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    p = np.asarray(positions, dtype=np.float64)
+    T1, N, _ = p.shape
+    fig, ax = plt.subplots(figsize=(7, 7), dpi=110)
+    H, W = occupancy.shape
+    ax.imshow(occupancy, cmap="Greys", vmin=0, vmax=1.6, origin="upper", extent=(0, W, H, 0),
+              interpolation="nearest")
+    colors = plt.cm.tab10(np.arange(N) % 10)
+    ts = np.unique(np.linspace(0, T1 - 1, instants).round().astype(int))
+    for k, t in enumerate(ts):  # communication edges at a few instants, fading in with time
+        shade = 0.25 + 0.6 * k / max(len(ts) - 1, 1)
+        for i in range(N):
+            for j in range(i + 1, N):
+                if np.linalg.norm(p[t, i] - p[t, j]) <= comm_radius:
+                    ax.plot(p[t, [i, j], 0], p[t, [i, j], 1], "-", color=(0.2, 0.6, 0.2, shade), lw=1.0)
+        ax.scatter(p[t, :, 0], p[t, :, 1], s=14, c=colors, alpha=shade, zorder=3)
+    for i in range(N):
+        lw = 2.2 if i == leader else 1.2
+        ax.plot(p[:, i, 0], p[:, i, 1], "-", color=colors[i], lw=lw, label=f"robot {i}" + (" (leader)" if i == leader else ""))
+        ax.scatter(*p[0, i], marker="o", s=60, facecolors="none", edgecolors=[colors[i]], lw=1.5, zorder=4)
+    ax.scatter(*goal, marker="*", s=260, c="red", edgecolors="k", zorder=5, label="goal")
+    ax.add_patch(plt.Circle(goal, 1.0, fill=False, color="red", lw=1))
+    if crop:
+        pts = np.concatenate([p.reshape(-1, 2), np.asarray(goal)[None]])
+        lo = np.maximum(pts.min(0) - 12, 0)
+        hi = np.minimum(pts.max(0) + 12, [W, H])
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(hi[1], lo[1])
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(title or f"{N} robots, {T1 - 1} steps")
+    ax.legend(loc="upper right", fontsize=7, framealpha=0.8)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(out)
+    plt.close(fig)
+    return out
