@@ -21,7 +21,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.sparse.csgraph import dijkstra
 
 from ..world.geometry import bilinear, clearance, line_of_sight
 from ..world.graph import (WeightParams, connected, edge_weights, fiedler, lambda2_gradient,
@@ -51,9 +50,9 @@ class ExpertConfig:
     stall_steps: int = 40  # no leader progress for this many steps: re-plan the tree
     geodesic_pull: bool = True
     los_clearance: float = 1.1  # clearance a straight pull must keep to count as line of sight
-    pull_limit: float = 45.0  # m: geodesic search radius around the parent
+    pull_limit: float = 35.0  # m: geodesic search radius around the parent
     pull_hops: int = 24  # cells of the geodesic path considered for the look-ahead target
-    pull_refresh: int = 4  # steps a pull target is reused
+    pull_refresh: int = 12  # steps a pull target is reused
     inertia: float = 0.5  # fraction of the previous step kept in the next one
     margin_obs: float = 0.08  # safety filter margins on top of d_obs_min / d_coll_min
     margin_coll: float = 0.08
@@ -70,10 +69,6 @@ class ExpertEpisode:
     steps: int
     reference_length: float
     info: dict = field(default_factory=dict)
-
-
-import os
-_DEBUG = bool(os.environ.get("ROKEN_DEBUG"))
 
 
 def _node_near(g: GridGraph, xy: np.ndarray) -> int:
@@ -220,11 +215,6 @@ class LaplacianExpert:
             step = self._filter(q, v, obs_grad, padded, st.leader)
             st.v_prev = step
             step[~active] = 0.0
-            if _DEBUG and (st.t[0] % 50 == 0 or 300 < st.t[0] < 304):
-                print("t", st.t[0], "ratio %.2f speed %.2f" % (ratio[0], speed[0]), "frac", frac[0].round(2),
-                      "v", np.linalg.norm(v[0], axis=-1).round(2), "step", np.linalg.norm(step[0], axis=-1).round(2),
-                      "par", tree_parents(st.tree, st.leader)[0], "clr", obs[0].round(2),
-                      "pullvalid", st.pull_valid[0], "tgt", st.pull_target[0].round(1).tolist(), "dir", dir_c[0].round(2).tolist(), "q", q[0].round(1).tolist())
             st.q = q + step
             st.t += active
             # -- bookkeeping: progress, stalls, termination
@@ -309,18 +299,15 @@ class LaplacianExpert:
             src = _node_near(g, q[s_, p_])
             if src < 0:
                 continue
-            _, pred = dijkstra(g.csr, directed=False, indices=src, limit=cfg.pull_limit,
-                               return_predecessors=True)
-            for k in np.nonzero((b == s_) & (p == p_))[0]:
-                n = _node_near(g, q[s_, m[k]])
-                hops = []
-                while n >= 0 and len(hops) < cfg.pull_hops:
-                    n = int(pred[n])
-                    if n >= 0:
-                        hops.append(n)
-                if hops:
-                    rc = g.cells[hops]
-                    pts[k, :len(hops)] = np.stack([rc[:, 1] + 0.5, rc[:, 0] + 0.5], axis=1)
+            pred = g.predecessors_within(src, cfg.pull_limit)
+            ks = np.nonzero((b == s_) & (p == p_))[0]
+            n = np.array([_node_near(g, q[s_, m[k]]) for k in ks])
+            for h in range(cfg.pull_hops):  # walk all children's paths toward the parent at once
+                n = np.where(n >= 0, pred[np.maximum(n, 0)], -1)
+                if not (n >= 0).any():
+                    break
+                live = n >= 0
+                pts[ks[live], h] = g.cells[n[live]][:, ::-1] + 0.5
         has = ~np.isnan(pts[..., 0])
         filled = np.where(has[..., None], pts, q[b, m][:, None])
         vis = line_of_sight(sdf, q[b, m][:, None], filled, cfg.los_clearance, spacing=0.5, index=b[:, None])
@@ -339,16 +326,20 @@ class LaplacianExpert:
         n = obs_grad / np.maximum(np.linalg.norm(obs_grad, axis=-1, keepdims=True), 1e-9)
         into = np.minimum((v * n).sum(-1), 0.0)[..., None]
         slide = v - into * n
-        cand = np.stack([v, slide, 0.5 * v, 0.25 * v, 0.5 * slide, np.zeros_like(v)], axis=2)  # (S,N,K,2)
-        K = cand.shape[2]
-        idx = np.broadcast_to(sl[:, None, None], (S, N, K))
-        newp = q[:, :, None] + cand
-        c_new = clearance(padded, newp, idx)
-        c_old = clearance(padded, q, idx[..., 0])
         thr = tc.d_obs_min + cfg.margin_obs
-        ok = (c_new >= thr) | (c_new >= c_old[..., None])
-        ok[..., -1] = True
-        step = np.take_along_axis(cand, np.argmax(ok, axis=2)[..., None, None], axis=2)[:, :, 0]
+        idx = np.broadcast_to(sl[:, None], (S, N))
+        c_old = clearance(padded, q, idx)
+        c_new = clearance(padded, q + v, idx)
+        step = v.copy()
+        bad = (c_new < thr) & (c_new < c_old)
+        if bad.any():  # fall-backs only for the few robots whose direct step is unsafe
+            bb, mm = np.nonzero(bad)
+            vb, sb = v[bb, mm], slide[bb, mm]
+            cand = np.stack([sb, 0.5 * vb, 0.25 * vb, 0.5 * sb, np.zeros_like(vb)], axis=1)  # (M, K, 2)
+            cc = clearance(padded, q[bb, mm][:, None] + cand, np.broadcast_to(bb[:, None], cand.shape[:2]))
+            ok = (cc >= thr) | (cc >= c_old[bb, mm][:, None])
+            ok[:, -1] = True
+            step[bb, mm] = cand[np.arange(len(bb)), np.argmax(ok, axis=1)]
         d_old = np.linalg.norm(q[:, :, None] - q[:, None], axis=-1)
         off = ~np.eye(N, dtype=bool)[None]
         for _ in range(2 * N + 2):

@@ -24,7 +24,7 @@ class GridGraph:
     free: np.ndarray  # (H, W) bool
     node: np.ndarray  # (H, W) int64, -1 where blocked
     cells: np.ndarray  # (V, 2) int64 (r, c)
-    csr: csr_matrix  # (V, V) upper-triangular edge costs, searched as undirected
+    csr: csr_matrix  # (V, V) symmetric edge costs
     component: np.ndarray  # (V,) connected-component label of each node
 
     @classmethod
@@ -47,8 +47,11 @@ class GridGraph:
             dst.append(node[rr + dr, cc + dc])
             cost.append(np.full(len(rr), w))
         V = len(cells)
-        csr = csr_matrix((np.concatenate(cost), (np.concatenate(src), np.concatenate(dst))), shape=(V, V))
-        _, comp = connected_components(csr, directed=False)
+        src, dst, cost = np.concatenate(src), np.concatenate(dst), np.concatenate(cost)
+        # both directions stored: searches run as directed, so scipy does not convert the matrix per call
+        csr = csr_matrix((np.concatenate([cost, cost]), (np.concatenate([src, dst]), np.concatenate([dst, src]))),
+                         shape=(V, V))
+        _, comp = connected_components(csr, directed=True, connection="weak")
         return cls(free=free, node=node, cells=cells, csr=csr, component=comp)
 
     def node_of(self, xy: np.ndarray) -> int:
@@ -61,7 +64,11 @@ class GridGraph:
 
     def field(self, source: int, with_predecessors: bool = False):
         """Geodesic (octile) distance from node `source` to every node; inf where unreachable."""
-        return dijkstra(self.csr, directed=False, indices=source, return_predecessors=with_predecessors)
+        return dijkstra(self.csr, directed=True, indices=source, return_predecessors=with_predecessors)
+
+    def predecessors_within(self, source: int, limit: float) -> np.ndarray:
+        """Shortest-path predecessors toward `source` of every node within geodesic distance `limit`."""
+        return dijkstra(self.csr, directed=True, indices=source, limit=limit, return_predecessors=True)[1]
 
     def field_grid(self, source: int) -> np.ndarray:
         """`field` laid out on the (H, W) grid, inf on blocked cells."""
