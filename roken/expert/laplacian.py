@@ -169,7 +169,7 @@ class LaplacianExpert:
             cur = np.where((st.tree & ~comm).any(axis=(1, 2)) | ~st.has_tree, np.inf, cur)
             new = np.where(new_tree, cost, 0.0).sum(axis=(1, 2)) / 2
             switch = ~np.isfinite(cur) | (new < cur - cfg.tree_switch_margin) | st.force_replan
-            if switch.any():
+            if switch.any() and N > 1:
                 st.tree[switch] = new_tree[switch]
                 st.has_tree[switch] = True
                 st.force_replan[switch] = False

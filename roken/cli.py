@@ -1,0 +1,63 @@
+"""`roken` command line: `roken plot RUN_DIR --episode ID --out FILE.png`, `roken validate RUN_DIR`."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from .config import ConfigError
+
+
+def cmd_plot(args) -> int:
+    from .data.store import read_run
+    from .eval.plot import plot_episode
+
+    maps, episodes = read_run(args.run)
+    if args.episode:
+        chosen = [e for e in episodes if e["episode_id"] == args.episode]
+        if not chosen:
+            ids = ", ".join(e["episode_id"] for e in episodes[:5])
+            print(f"error: no episode {args.episode!r} in {args.run} (for example: {ids})", file=sys.stderr)
+            return 2
+    else:
+        chosen = [episodes[args.index]]
+    e = chosen[0]
+    title = (f"{e['episode_id']}\nsuccess={e['success']} reach={e['reach']} obs-coll={e['obstacle_collision']} "
+             f"inter-coll={e['inter_collision']} connected={e['connectivity']}")
+    out = plot_episode(maps[e["map_id"]].occupancy, e["positions"], e["goal"], e["leader"], args.out,
+                       instants=args.instants, title=title, crop=not args.full)
+    print(out)
+    return 0
+
+
+def cmd_validate(args) -> int:
+    from .data.store import read_run
+
+    maps, episodes = read_run(args.run)
+    print(f"{args.run}: {len(maps)} maps, {len(episodes)} episodes, schema ok")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="roken", description=__doc__)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("plot", help="draw one episode of a dataset / evaluation folder as a PNG")
+    p.add_argument("run", help="folder with maps/ and episodes/")
+    p.add_argument("--episode", help="episode_id (default: --index)")
+    p.add_argument("--index", type=int, default=0, help="episode number in file order")
+    p.add_argument("--out", required=True, help="PNG to write")
+    p.add_argument("--instants", type=int, default=4, help="instants at which communication edges are drawn")
+    p.add_argument("--full", action="store_true", help="draw the whole map instead of the team's area")
+    p.set_defaults(fn=cmd_plot)
+    v = sub.add_parser("validate", help="check a folder against the episode-store contract")
+    v.add_argument("run")
+    v.set_defaults(fn=cmd_validate)
+    args = ap.parse_args(argv)
+    try:
+        return args.fn(args)
+    except (ConfigError, ValueError, OSError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

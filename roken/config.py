@@ -1,0 +1,22 @@
+"""The root config: one typed section per stage, loaded from YAML with `--set` overrides."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from .configtools import ConfigError, load, to_dict  # noqa: F401  (re-exported)
+from .eval.harness import EvalConfig
+from .expert.laplacian import ExpertConfig
+from .world.maps import MapConfig
+from .world.tasks import TaskConfig
+
+
+@dataclass
+class Config:
+    map: MapConfig = field(default_factory=MapConfig)
+    task: TaskConfig = field(default_factory=TaskConfig)
+    expert: ExpertConfig = field(default_factory=ExpertConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+
+
+def load_config(path=None, overrides: list[str] | None = None) -> Config:
+    return load(Config, path, overrides)

@@ -1,0 +1,181 @@
+"""Episode store: the Parquet contract of ARCHITECTURE.md, atomic writes, a validating reader.
+
+A dataset or evaluation folder holds maps/*.parquet and episodes/*.parquet. Plain Arrow types only (no
+extension types), so pyarrow, pandas, Ray Data and DuckDB read it as is; `schema_version` and `kind` sit in
+the file metadata. Files are written under a temporary name in the same folder and renamed into place, so
+a reader never sees half a file and a crash leaves no partial shard under the final name.
+"""
+from __future__ import annotations
+
+import json
+import os
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from ..world.grid import GridMap
+
+SCHEMA_VERSION = "1"
+
+MAPS_SCHEMA = pa.schema([
+    ("map_id", pa.string()),
+    ("height", pa.int32()),
+    ("width", pa.int32()),
+    ("occupancy", pa.binary()),
+    ("source", pa.string()),
+])
+
+EPISODES_SCHEMA = pa.schema([
+    ("episode_id", pa.string()),
+    ("map_id", pa.string()),
+    ("planner", pa.string()),
+    ("num_robots", pa.int32()),
+    ("leader", pa.int32()),
+    ("num_steps", pa.int32()),
+    ("goal", pa.list_(pa.float32(), 2)),
+    ("positions", pa.list_(pa.float32())),
+    ("success", pa.bool_()),
+    ("reach", pa.bool_()),
+    ("obstacle_collision", pa.bool_()),
+    ("inter_collision", pa.bool_()),
+    ("connectivity", pa.bool_()),
+    ("path_length", pa.float32()),
+    ("astar_length", pa.float32()),
+    ("seed", pa.int64()),
+])
+
+
+class StoreError(ValueError):
+    """A file that does not follow the episode-store contract, with the file and the reason."""
+
+
+def atomic_write_table(table: pa.Table, path: str | Path, kind: str, extra_meta: dict | None = None) -> Path:
+    """Write `table` to `path` via a temporary file in the same folder and an atomic rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = {b"schema_version": SCHEMA_VERSION.encode(), b"kind": kind.encode()}
+    for k, v in (extra_meta or {}).items():
+        meta[k.encode()] = json.dumps(v).encode()
+    table = table.replace_schema_metadata({**(table.schema.metadata or {}), **meta})
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    try:
+        pq.write_table(table, tmp)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def atomic_write_json(obj: dict, path: str | Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    tmp.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
+    os.replace(tmp, path)
+    return path
+
+
+def _json_default(o):
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+def maps_table(maps: list[GridMap]) -> pa.Table:
+    return pa.Table.from_pylist([{
+        "map_id": m.map_id, "height": m.shape[0], "width": m.shape[1],
+        "occupancy": np.ascontiguousarray(m.occupancy, dtype=np.uint8).tobytes(), "source": m.source,
+    } for m in maps], schema=MAPS_SCHEMA)
+
+
+def episodes_table(rows: list[dict]) -> pa.Table:
+    """rows: dicts with the EPISODES_SCHEMA columns; `positions` may be a (T+1, N, 2) array."""
+    out = []
+    for r in rows:
+        r = dict(r)
+        pos = np.asarray(r["positions"], dtype=np.float32)
+        if pos.ndim == 3:
+            r.setdefault("num_steps", pos.shape[0] - 1)
+            r.setdefault("num_robots", pos.shape[1])
+        r["positions"] = pos.reshape(-1)
+        r["goal"] = np.asarray(r["goal"], dtype=np.float32).reshape(2)
+        out.append(r)
+    return pa.Table.from_pylist(out, schema=EPISODES_SCHEMA)
+
+
+def _read(path: Path, kind: str, schema: pa.Schema) -> pa.Table:
+    try:
+        table = pq.read_table(path)
+    except (pa.ArrowInvalid, OSError) as e:
+        raise StoreError(f"{path}: not a readable Parquet file ({e}); delete it and re-run to regenerate it") from None
+    meta = table.schema.metadata or {}
+    version = meta.get(b"schema_version", b"").decode()
+    if version != SCHEMA_VERSION:
+        raise StoreError(f"{path}: schema_version {version or 'missing'!r}, this code reads {SCHEMA_VERSION!r}")
+    got = meta.get(b"kind", b"").decode()
+    if got != kind:
+        raise StoreError(f"{path}: holds a {got or 'unknown'!r} table, expected {kind!r}")
+    missing = [f.name for f in schema if f.name not in table.column_names]
+    if missing:
+        raise StoreError(f"{path}: missing columns {missing}")
+    for f in schema:
+        if not table.schema.field(f.name).type.equals(f.type):
+            raise StoreError(f"{path}: column {f.name} has type {table.schema.field(f.name).type}, expected {f.type}")
+    return table
+
+
+def read_maps(path: str | Path) -> dict[str, GridMap]:
+    table = _read(Path(path), "maps", MAPS_SCHEMA)
+    out = {}
+    for r in table.to_pylist():
+        occ = np.frombuffer(r["occupancy"], dtype=np.uint8)
+        if occ.size != r["height"] * r["width"]:
+            raise StoreError(f"{path}: map {r['map_id']} has {occ.size} occupancy bytes, "
+                             f"expected {r['height']} x {r['width']}")
+        if not np.isin(occ, [0, 1]).all():
+            raise StoreError(f"{path}: map {r['map_id']} occupancy is not binary")
+        out[r["map_id"]] = GridMap(r["map_id"], occ.reshape(r["height"], r["width"]).copy(), r["source"] or "")
+    return out
+
+
+def read_episodes(path: str | Path) -> list[dict]:
+    """Episode rows with `positions` as (T+1, N, 2) float32 arrays; validated row by row."""
+    path = Path(path)
+    table = _read(path, "episodes", EPISODES_SCHEMA)
+    rows = table.to_pylist()
+    for r in rows:
+        N, T = r["num_robots"], r["num_steps"]
+        pos = np.asarray(r["positions"], dtype=np.float32)
+        if N < 1 or T < 0 or pos.size != (T + 1) * N * 2:
+            raise StoreError(f"{path}: episode {r['episode_id']} has {pos.size} position values, "
+                             f"expected (num_steps+1) * num_robots * 2 = {(T + 1) * N * 2}")
+        if not 0 <= r["leader"] < N:
+            raise StoreError(f"{path}: episode {r['episode_id']} leader {r['leader']} not in 0..{N - 1}")
+        r["positions"] = pos.reshape(T + 1, N, 2)
+        r["goal"] = np.asarray(r["goal"], dtype=np.float32)
+    return rows
+
+
+def read_run(folder: str | Path) -> tuple[dict[str, GridMap], list[dict]]:
+    """All maps and episodes of a dataset / evaluation folder; every episode's map must be present."""
+    folder = Path(folder)
+    map_files = sorted((folder / "maps").glob("*.parquet"))
+    ep_files = sorted((folder / "episodes").glob("*.parquet"))
+    if not map_files or not ep_files:
+        raise StoreError(f"{folder}: expected maps/*.parquet and episodes/*.parquet")
+    maps: dict[str, GridMap] = {}
+    for f in map_files:
+        maps.update(read_maps(f))
+    episodes = [e for f in ep_files for e in read_episodes(f)]
+    orphans = sorted({e["map_id"] for e in episodes} - set(maps))
+    if orphans:
+        raise StoreError(f"{folder}: episodes refer to maps missing from maps/: {orphans[:5]}")
+    return maps, episodes

@@ -1,0 +1,60 @@
+import numpy as np
+
+from roken.expert.laplacian import ExpertConfig, LaplacianExpert
+from roken.expert.smoothing import moving_average
+from roken.eval.metrics import episode_metrics, summarize
+from roken.world.maps import generate_map
+from roken.world.tasks import sample_task
+
+
+def _run(mc, tc, n, idx, cfg=None):
+    maps = {}
+    tasks = []
+    for i in idx:
+        gm = generate_map(mc, "eval", i)
+        maps[gm.map_id] = gm
+        tasks.append(sample_task(gm, n, tc, np.random.default_rng([5, n, i])))
+    out = dict(LaplacianExpert(cfg or ExpertConfig(batch_size=8), tc).run(tasks, maps))
+    return tasks, maps, [out[i] for i in range(len(tasks))]
+
+
+def test_expert_succeeds_on_a_small_batch(mc, tc):
+    tasks, maps, eps = _run(mc, tc, 4, range(10))
+    rows = [episode_metrics(e.positions, maps[t.map_id], t.goal, t.leader, tc) for t, e in zip(tasks, eps)]
+    s = summarize(rows)
+    assert s["full_success"] >= 0.8, s
+    assert s["obstacle_collision"] == 0 and s["inter_collision"] == 0
+    for t, e in zip(tasks, eps):
+        p = e.positions
+        np.testing.assert_allclose(p[0], t.starts, atol=1e-5)  # recorded from the start
+        steps = np.linalg.norm(np.diff(p, axis=0), axis=-1)
+        assert steps.max() <= tc.max_step + 1e-4  # every step <= 0.5 m
+        assert len(p) - 1 <= e.info["limit"]
+
+
+def test_expert_is_deterministic(mc, tc):
+    # batch 3 < 4 tasks: a finished slot is refilled, which must not perturb the other slots
+    _, _, a = _run(mc, tc, 3, range(4), ExpertConfig(batch_size=3))
+    _, _, b = _run(mc, tc, 3, range(4), ExpertConfig(batch_size=3))
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x.positions, y.positions)
+
+
+def test_single_robot_and_large_team(mc, tc):
+    tasks, maps, eps = _run(mc, tc, 1, range(2))
+    assert all(e.reached for e in eps)
+    tasks, maps, eps = _run(mc, tc, 10, range(2))
+    for t, e in zip(tasks, eps):
+        m = episode_metrics(e.positions, maps[t.map_id], t.goal, t.leader, tc)
+        assert not m.obstacle_collision and not m.inter_collision and m.connectivity
+
+
+def test_moving_average_keeps_endpoints_and_step_bound():
+    rng = np.random.default_rng(0)
+    steps = rng.normal(size=(50, 3, 2))
+    steps *= 0.5 / np.linalg.norm(steps, axis=-1, keepdims=True)
+    p = np.concatenate([np.zeros((1, 3, 2)), np.cumsum(steps, axis=0)])
+    s = moving_average(p, 5)
+    np.testing.assert_allclose(s[0], p[0])
+    np.testing.assert_allclose(s[-1], p[-1])
+    assert np.linalg.norm(np.diff(s, axis=0), axis=-1).max() <= 0.5 + 1e-9
