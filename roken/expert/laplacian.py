@@ -28,7 +28,8 @@ from ..world.graph import (WeightParams, connected, edge_weights, fiedler, lambd
 from ..world.grid import GridMap
 from ..world.paths import GridGraph
 from ..world.tasks import Task, TaskConfig
-from .reference import leader_reference, reference_length
+from ..world.paths import path_length
+from .reference import leader_reference
 from .smoothing import smooth_episode
 
 
@@ -109,7 +110,7 @@ class LaplacianExpert:
                                spacing=self.tc.max_step / 2)
         if ref is None:
             ref = np.stack([task.starts[task.leader], task.goal]).astype(np.float64)
-        L = reference_length(ref)
+        L = path_length(ref)
         limit = int(np.ceil(self.cfg.step_limit_factor * L / self.tc.max_step)) + self.cfg.step_limit_extra
         return ref, L, limit
 

@@ -35,7 +35,3 @@ def leader_reference(gm: GridMap, start: np.ndarray, goal: np.ndarray, clearance
     poly = np.concatenate([np.asarray(start, float)[None], cells, np.asarray(goal, float)[None]])
     poly = shortcut(poly, gm.sdf, clearance)
     return resample(poly, spacing)
-
-
-def reference_length(ref: np.ndarray) -> float:
-    return path_length(ref)
