@@ -52,17 +52,14 @@ class StoreError(ValueError):
     """A file that does not follow the episode-store contract, with the file and the reason."""
 
 
-def atomic_write_table(table: pa.Table, path: str | Path, kind: str, extra_meta: dict | None = None) -> Path:
-    """Write `table` to `path` via a temporary file in the same folder and an atomic rename."""
+def _atomic_write(path: str | Path, write) -> Path:
+    """Call write(tmp) on a temporary name in the target folder, then rename it into place atomically;
+    the temporary file is removed whatever happens, so a failure leaves nothing half-written."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    meta = {b"schema_version": SCHEMA_VERSION.encode(), b"kind": kind.encode()}
-    for k, v in (extra_meta or {}).items():
-        meta[k.encode()] = json.dumps(v).encode()
-    table = table.replace_schema_metadata({**(table.schema.metadata or {}), **meta})
     tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
     try:
-        pq.write_table(table, tmp)
+        write(tmp)
         os.replace(tmp, path)
     finally:
         if tmp.exists():
@@ -70,13 +67,18 @@ def atomic_write_table(table: pa.Table, path: str | Path, kind: str, extra_meta:
     return path
 
 
+def atomic_write_table(table: pa.Table, path: str | Path, kind: str, extra_meta: dict | None = None) -> Path:
+    """Write `table` to `path` atomically, with `schema_version`, `kind` and `extra_meta` in its metadata."""
+    meta = {b"schema_version": SCHEMA_VERSION.encode(), b"kind": kind.encode()}
+    for k, v in (extra_meta or {}).items():
+        meta[k.encode()] = json.dumps(v).encode()
+    table = table.replace_schema_metadata({**(table.schema.metadata or {}), **meta})
+    return _atomic_write(path, lambda tmp: pq.write_table(table, tmp))
+
+
 def atomic_write_json(obj: dict, path: str | Path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    tmp.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
-    os.replace(tmp, path)
-    return path
+    text = json.dumps(obj, indent=2, default=_json_default) + "\n"
+    return _atomic_write(path, lambda tmp: tmp.write_text(text))
 
 
 def _json_default(o):

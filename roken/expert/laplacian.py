@@ -72,24 +72,6 @@ class ExpertEpisode:
     info: dict = field(default_factory=dict)
 
 
-def _node_near(g: GridGraph, xy: np.ndarray) -> int:
-    """Safe-graph node of the cell at xy, else of a safe cell among its 8 neighbours, else -1."""
-    n = g.node_of(xy)
-    if n >= 0:
-        return n
-    c, r = int(np.floor(xy[0])), int(np.floor(xy[1]))
-    H, W = g.free.shape
-    best, bd = -1, np.inf
-    for dr in (-1, 0, 1):
-        for dc in (-1, 0, 1):
-            rr, cc = r + dr, c + dc
-            if 0 <= rr < H and 0 <= cc < W and g.node[rr, cc] >= 0:
-                d = (cc + 0.5 - xy[0]) ** 2 + (rr + 0.5 - xy[1]) ** 2
-                if d < bd:
-                    best, bd = int(g.node[rr, cc]), d
-    return best
-
-
 def unit_path_lambda2(n: int) -> float:
     return 2.0 * (1.0 - np.cos(np.pi / max(n, 2)))
 
@@ -205,8 +187,6 @@ class LaplacianExpert:
             else:
                 ratio = np.ones(S)
             speed = np.clip((ratio - cfg.leader_stop) / (cfg.leader_slow - cfg.leader_stop), 0.0, 1.0)
-            if N == 1:
-                speed = np.ones(S)
             mix = speed[:, None] * un + cfg.leader_conn_weight * frac[sl, st.leader][:, None] * dir_c[sl, st.leader]
             mix_n = np.linalg.norm(mix, axis=-1)
             lstep = np.minimum(tc.max_step * np.minimum(mix_n, 1.0), dist_t)  # do not overshoot the goal
@@ -291,18 +271,16 @@ class LaplacianExpert:
         farthest point of its first `pull_hops` cells still in line of sight of the follower."""
         cfg = self.cfg
         M = len(b)
-        tgt = np.zeros((M, 2))
-        ok = np.zeros(M, bool)
         pts = np.full((M, cfg.pull_hops, 2), np.nan)
         for key in set(zip(b.tolist(), p.tolist())):
             s_, p_ = key
             g = st.graphs[s_]
-            src = _node_near(g, q[s_, p_])
+            src = g.nearest_node(q[s_, p_])
             if src < 0:
                 continue
             pred = g.predecessors_within(src, cfg.pull_limit)
             ks = np.nonzero((b == s_) & (p == p_))[0]
-            n = np.array([_node_near(g, q[s_, m[k]]) for k in ks])
+            n = np.array([g.nearest_node(q[s_, m[k]]) for k in ks])
             for h in range(cfg.pull_hops):  # walk all children's paths toward the parent at once
                 n = np.where(n >= 0, pred[np.maximum(n, 0)], -1)
                 if not (n >= 0).any():

@@ -7,18 +7,6 @@ from ..world.grid import GridMap
 from ..world.paths import cell_path, path_length, resample, shortcut
 
 
-def nearest_node(gm: GridMap, xy: np.ndarray) -> int:
-    """Node of the safe graph at `xy`, or of the nearest safe cell when `xy`'s cell is not safe."""
-    g = gm.safe_graph
-    n = g.node_of(xy)
-    if n >= 0:
-        return n
-    if len(g.cells) == 0:
-        return -1
-    centres = g.cells[:, ::-1] + 0.5
-    return int(np.argmin(np.linalg.norm(centres - xy, axis=1)))
-
-
 def leader_reference(gm: GridMap, start: np.ndarray, goal: np.ndarray, clearance: float,
                      spacing: float) -> np.ndarray | None:
     """Smoothed A* reference from `start` to `goal` as points every `spacing` m; None if unreachable.
@@ -27,7 +15,7 @@ def leader_reference(gm: GridMap, start: np.ndarray, goal: np.ndarray, clearance
     robots clear of obstacles; string pulling then removes the grid's zig-zag while keeping `clearance`.
     """
     g = gm.safe_graph
-    s, t = nearest_node(gm, start), nearest_node(gm, goal)
+    s, t = g.nearest_node(start, search_all=True), g.nearest_node(goal, search_all=True)
     if s < 0 or t < 0 or g.component[s] != g.component[t]:
         return None
     _, pred = g.field(t, with_predecessors=True)

@@ -62,6 +62,25 @@ class GridGraph:
             return -1
         return int(self.node[r, c])
 
+    def nearest_node(self, xy: np.ndarray, search_all: bool = False) -> int:
+        """Node of the cell at xy; else the nearest node among its 8 neighbours (by centre distance);
+        else, with `search_all`, the nearest node anywhere; else -1."""
+        n = self.node_of(xy)
+        if n >= 0 or len(self.cells) == 0:
+            return n
+        centres = self.cells[:, ::-1] + 0.5
+        if search_all:
+            return int(np.argmin(np.linalg.norm(centres - xy, axis=1)))
+        c, r = int(np.floor(xy[0])), int(np.floor(xy[1]))
+        H, W = self.free.shape
+        rr, cc = np.meshgrid(np.arange(r - 1, r + 2), np.arange(c - 1, c + 2), indexing="ij")
+        inside = (rr >= 0) & (rr < H) & (cc >= 0) & (cc < W)
+        nodes = self.node[rr[inside], cc[inside]]
+        nodes = nodes[nodes >= 0]
+        if len(nodes) == 0:
+            return -1
+        return int(nodes[np.argmin(np.linalg.norm(centres[nodes] - xy, axis=1))])
+
     def field(self, source: int, with_predecessors: bool = False):
         """Geodesic (octile) distance from node `source` to every node; inf where unreachable."""
         return dijkstra(self.csr, directed=True, indices=source, return_predecessors=with_predecessors)
