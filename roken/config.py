@@ -4,6 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from .configtools import ConfigError, load, to_dict  # noqa: F401  (re-exported)
+from .data.generation import DatasetConfig
 from .eval.harness import EvalConfig
 from .expert.laplacian import ExpertConfig
 from .world.maps import MapConfig
@@ -16,6 +17,7 @@ class Config:
     task: TaskConfig = field(default_factory=TaskConfig)
     expert: ExpertConfig = field(default_factory=ExpertConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
 
 
 def load_config(path=None, overrides: list[str] | None = None) -> Config:

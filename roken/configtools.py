@@ -118,11 +118,14 @@ def parse_override(text: str) -> tuple[str, Any]:
     return key.strip(), value
 
 
-def _merge(base: dict, extra: dict) -> dict:
+def _merge(base: dict, extra: dict, cls: type) -> dict:
+    """`extra` over `base`; sections (dataclasses) merge key by key, any other value (a dict-valued field
+    such as map.families included) is replaced whole, so a file lists exactly the families it wants."""
     out = dict(base)
+    hints = typing.get_type_hints(cls)
     for k, v in extra.items():
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k] = _merge(out[k], v)
+        if isinstance(v, dict) and isinstance(out.get(k), dict) and dataclasses.is_dataclass(hints.get(k)):
+            out[k] = _merge(out[k], v, hints[k])
         else:
             out[k] = v
     return out
@@ -142,7 +145,7 @@ def load(cls: type, path: str | Path | None = None, overrides: list[str] | None 
         if not isinstance(loaded, dict):
             raise ConfigError(f"config {p}: the top level must be a mapping")
         _check_keys(cls, loaded, "")
-        tree = _merge(tree, loaded)
+        tree = _merge(tree, loaded, cls)
     for text in overrides or []:
         key, value = parse_override(text)
         _check_path(cls, key)

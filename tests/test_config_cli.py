@@ -62,7 +62,7 @@ def test_evaluate_command_end_to_end(tmp_path):
         assert again[k] == pytest.approx(metrics[k])
     # resume: the same command reuses the stored episodes
     r2 = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-    assert r2.returncode == 0 and "reusing" in r2.stdout
+    assert r2.returncode == 0 and "reusing" in r2.stderr
     png = tmp_path / "ep.png"
     r3 = subprocess.run([sys.executable, "-m", "roken", "plot", str(out), "--index", "1", "--out", str(png)],
                         capture_output=True, text=True, timeout=120)

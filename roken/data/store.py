@@ -8,8 +8,6 @@ a reader never sees half a file and a crash leaves no partial shard under the fi
 from __future__ import annotations
 
 import json
-import os
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +15,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from ..world.grid import GridMap
+from ..world.metrics import episode_metrics
+from ..world.tasks import Task, TaskConfig
+from . import fs
 
 SCHEMA_VERSION = "1"
 
@@ -52,33 +53,45 @@ class StoreError(ValueError):
     """A file that does not follow the episode-store contract, with the file and the reason."""
 
 
-def _atomic_write(path: str | Path, write) -> Path:
-    """Call write(tmp) on a temporary name in the target folder, then rename it into place atomically;
-    the temporary file is removed whatever happens, so a failure leaves nothing half-written."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
-
-
-def atomic_write_table(table: pa.Table, path: str | Path, kind: str, extra_meta: dict | None = None) -> Path:
-    """Write `table` to `path` atomically, with `schema_version`, `kind` and `extra_meta` in its metadata."""
+def table_bytes(table: pa.Table, kind: str, extra_meta: dict | None = None) -> bytes:
+    """`table` as Parquet bytes, with `schema_version`, `kind` and `extra_meta` (JSON) in its metadata."""
     meta = {b"schema_version": SCHEMA_VERSION.encode(), b"kind": kind.encode()}
     for k, v in (extra_meta or {}).items():
-        meta[k.encode()] = json.dumps(v).encode()
+        meta[k.encode()] = json.dumps(v, default=_json_default).encode()
     table = table.replace_schema_metadata({**(table.schema.metadata or {}), **meta})
-    return _atomic_write(path, lambda tmp: pq.write_table(table, tmp))
+    sink = pa.BufferOutputStream()
+    pq.write_table(table, sink)
+    return sink.getvalue().to_pybytes()
 
 
-def atomic_write_json(obj: dict, path: str | Path) -> Path:
-    text = json.dumps(obj, indent=2, default=_json_default) + "\n"
-    return _atomic_write(path, lambda tmp: tmp.write_text(text))
+def atomic_write_table(table: pa.Table, path: str | Path, kind: str, extra_meta: dict | None = None) -> str:
+    """Write `table` to `path` (local path or URI) atomically; see `roken.data.fs.write_atomic`."""
+    return fs.write_atomic(path, table_bytes(table, kind, extra_meta))
+
+
+def atomic_write_json(obj: dict, path: str | Path) -> str:
+    return fs.write_atomic(path, (json.dumps(obj, indent=2, default=_json_default) + "\n").encode())
+
+
+def read_json(path: str | Path) -> dict:
+    return json.loads(fs.read_bytes(path))
+
+
+def file_metadata(path: str | Path) -> dict:
+    """The JSON metadata entries of a store file (schema_version and kind as plain strings)."""
+    filesystem, p = fs.resolve(path)
+    meta = pq.read_schema(p, filesystem=filesystem).metadata or {}
+    out = {}
+    for k, v in meta.items():
+        key = k.decode()
+        if key in ("schema_version", "kind"):
+            out[key] = v.decode()
+        elif not key.startswith("ARROW"):
+            try:
+                out[key] = json.loads(v)
+            except ValueError:
+                out[key] = v.decode(errors="replace")
+    return out
 
 
 def _json_default(o):
@@ -113,9 +126,24 @@ def episodes_table(rows: list[dict]) -> pa.Table:
     return pa.Table.from_pylist(out, schema=EPISODES_SCHEMA)
 
 
-def _read(path: Path, kind: str, schema: pa.Schema) -> pa.Table:
+def episode_record(episode_id: str, planner: str, task: Task, gm: GridMap, positions: np.ndarray,
+                   task_cfg: TaskConfig, seed: int) -> dict:
+    """One episodes-table row: the trajectory scored by the shared metrics."""
+    m = episode_metrics(positions, gm, task.goal, task.leader, task_cfg)
+    return {
+        "episode_id": episode_id, "map_id": task.map_id, "planner": planner,
+        "num_robots": positions.shape[1], "leader": task.leader, "num_steps": len(positions) - 1,
+        "goal": task.goal, "positions": positions, "success": m.success, "reach": m.reach,
+        "obstacle_collision": m.obstacle_collision, "inter_collision": m.inter_collision,
+        "connectivity": m.connectivity, "path_length": m.path_length, "astar_length": m.astar_length,
+        "seed": seed,
+    }
+
+
+def _read(path: str | Path, kind: str, schema: pa.Schema) -> pa.Table:
     try:
-        table = pq.read_table(path)
+        filesystem, p = fs.resolve(path)
+        table = pq.read_table(p, filesystem=filesystem)
     except (pa.ArrowInvalid, OSError) as e:
         raise StoreError(f"{path}: not a readable Parquet file ({e}); delete it and re-run to regenerate it") from None
     meta = table.schema.metadata or {}
@@ -135,7 +163,7 @@ def _read(path: Path, kind: str, schema: pa.Schema) -> pa.Table:
 
 
 def read_maps(path: str | Path) -> dict[str, GridMap]:
-    table = _read(Path(path), "maps", MAPS_SCHEMA)
+    table = _read(path, "maps", MAPS_SCHEMA)
     out = {}
     for r in table.to_pylist():
         occ = np.frombuffer(r["occupancy"], dtype=np.uint8)
@@ -150,7 +178,6 @@ def read_maps(path: str | Path) -> dict[str, GridMap]:
 
 def read_episodes(path: str | Path) -> list[dict]:
     """Episode rows with `positions` as (T+1, N, 2) float32 arrays; validated row by row."""
-    path = Path(path)
     table = _read(path, "episodes", EPISODES_SCHEMA)
     rows = table.to_pylist()
     for r in rows:
@@ -167,10 +194,10 @@ def read_episodes(path: str | Path) -> list[dict]:
 
 
 def read_run(folder: str | Path) -> tuple[dict[str, GridMap], list[dict]]:
-    """All maps and episodes of a dataset / evaluation folder; every episode's map must be present."""
-    folder = Path(folder)
-    map_files = sorted((folder / "maps").glob("*.parquet"))
-    ep_files = sorted((folder / "episodes").glob("*.parquet"))
+    """All maps and episodes of a dataset / evaluation folder (path or URI); every episode's map must be
+    present and every episode id unique."""
+    map_files = fs.list_files(fs.join(folder, "maps"), ".parquet")
+    ep_files = fs.list_files(fs.join(folder, "episodes"), ".parquet")
     if not map_files or not ep_files:
         raise StoreError(f"{folder}: expected maps/*.parquet and episodes/*.parquet")
     maps: dict[str, GridMap] = {}
@@ -180,4 +207,8 @@ def read_run(folder: str | Path) -> tuple[dict[str, GridMap], list[dict]]:
     orphans = sorted({e["map_id"] for e in episodes} - set(maps))
     if orphans:
         raise StoreError(f"{folder}: episodes refer to maps missing from maps/: {orphans[:5]}")
+    ids = [e["episode_id"] for e in episodes]
+    if len(set(ids)) != len(ids):
+        dup = sorted({i for i in ids if ids.count(i) > 1})[:5]
+        raise StoreError(f"{folder}: duplicated episode ids {dup}")
     return maps, episodes

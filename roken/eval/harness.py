@@ -10,23 +10,25 @@ from __future__ import annotations
 
 import hashlib
 import json
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import pyarrow.parquet as pq
 
-from ..configtools import to_dict
-from ..data.store import (StoreError, atomic_write_json, atomic_write_table, episodes_table, maps_table,
-                          read_episodes)
+from ..configtools import from_dict, to_dict
+from ..data import fs
+from ..data.store import (StoreError, atomic_write_json, atomic_write_table, episode_record, episodes_table,
+                          file_metadata, maps_table, read_episodes)
 from ..expert.laplacian import LaplacianExpert
 from ..progress import Progress
+from ..units import InProcessRunner, Unit
 from ..world.grid import GridMap
 from ..world.loaders import MapError, find_map_files, load_map_file
 from ..world.maps import SPLITS, generate_map, split_size
 from ..world.tasks import TaskError, sample_task
-from .metrics import episode_metrics, format_table, summarize
+from .metrics import format_table, summarize
 
 PLANNERS = ("laplacian",)
 
@@ -39,7 +41,7 @@ class EvalConfig:
     maps: str = "eval"  # "train", "eval", or a folder / glob / file of external maps
     num_maps: int | None = None  # at most this many maps (default: the whole split or every file)
     seed: int = 0
-    workers: int = 0  # 0: in-process, no Ray
+    unit_episodes: int = 100  # episodes per work unit (a unit is one batched expert run)
 
 
 def load_maps(cfg) -> tuple[list[GridMap], list[dict]]:
@@ -70,8 +72,9 @@ def load_maps(cfg) -> tuple[list[GridMap], list[dict]]:
 
 def fingerprint(cfg, n: int) -> str:
     d = to_dict(cfg)
-    d["eval"] = {k: v for k, v in d["eval"].items() if k not in ("robots", "workers")}
-    return hashlib.sha256(json.dumps([d, n], sort_keys=True).encode()).hexdigest()[:16]
+    d["eval"] = {k: v for k, v in d["eval"].items() if k != "robots"}
+    d = {k: v for k, v in d.items() if k in ("map", "task", "expert", "eval")}
+    return hashlib.sha256(json.dumps([d, n], sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def make_tasks(cfg, maps: list[GridMap], n: int):
@@ -96,60 +99,92 @@ def run_planner(cfg, tasks, maps_by_id):
         raise ValueError(f"unknown planner {cfg.eval.planner!r}; available: {', '.join(PLANNERS)}")
 
 
-def evaluate_team_size(cfg, maps: list[GridMap], n: int, out: Path) -> tuple[list[dict], list[dict]]:
-    path = out / "episodes" / f"n{n:02d}.parquet"
-    fp = fingerprint(cfg, n)
-    if path.exists():
-        try:
-            meta = pq.read_schema(path).metadata or {}
-            if json.loads(meta.get(b"fingerprint", b'""')) == fp:
-                print(f"[N={n}] reusing {path} (same config)")
-                return read_episodes(path), json.loads(meta.get(b"skipped", b"[]"))
-        except (StoreError, OSError, ValueError):
-            pass
-    by_id = {m.map_id: m for m in maps}
-    tasks, skipped = make_tasks(cfg, maps, n)
-    for s in skipped:
-        print(f"[N={n}] skipped episode {s['episode']}: {s['reason']}")
+def eval_unit(ctx: dict, payload: dict, cache: dict) -> list[dict]:
+    """Worker function (roken.units): plan and score one unit's episodes; returns their rows."""
+    from ..config import Config
+
+    if "cfg" not in cache:
+        cache["cfg"] = from_dict(Config, ctx["config"])
+        cache["maps"] = {mid: GridMap(mid, occ, src) for mid, occ, src in ctx["maps"]}
+    cfg, by_id = cache["cfg"], cache["maps"]
+    n, tasks = payload["n"], payload["tasks"]
     rows: list[dict | None] = [None] * len(tasks)
-    bar = Progress(len(tasks), f"[{cfg.eval.planner} N={n}]")
     for i, pos in run_planner(cfg, tasks, by_id):
         e, task = tasks[i]
-        gm = by_id[task.map_id]
-        m = episode_metrics(pos, gm, task.goal, task.leader, cfg.task)
-        rows[i] = {
-            "episode_id": f"{cfg.eval.planner}-n{n:02d}-e{e:05d}-{task.map_id}", "map_id": task.map_id,
-            "planner": cfg.eval.planner, "num_robots": n, "leader": task.leader, "num_steps": len(pos) - 1,
-            "goal": task.goal, "positions": pos, "success": m.success, "reach": m.reach,
-            "obstacle_collision": m.obstacle_collision, "inter_collision": m.inter_collision,
-            "connectivity": m.connectivity, "path_length": m.path_length, "astar_length": m.astar_length,
-            "seed": e,
-        }
-        bar.update()
-    done = [r for r in rows if r is not None]
-    if done:
-        atomic_write_table(episodes_table(done), path, "episodes", {"fingerprint": fp, "skipped": skipped})
-    return done, skipped
+        rows[i] = episode_record(f"{cfg.eval.planner}-n{n:02d}-e{e:05d}-{task.map_id}", cfg.eval.planner, task,
+                                 by_id[task.map_id], pos, cfg.task, e)
+    return [r for r in rows if r is not None]
 
 
-def evaluate(cfg, out: str | Path) -> dict:
-    """Run the evaluation described by `cfg` into folder `out`; returns the metrics dict."""
-    if cfg.eval.workers != 0:
-        raise ValueError("eval.workers > 0 needs the Ray fan-out, which is not part of this release; "
-                         "use --workers 0 (in-process)")
+def _reuse(path: str, fp: str, n: int):
+    """(rows, skipped) of a team size finished earlier with the same config, else None."""
+    if not fs.exists(path):
+        return None
+    try:
+        meta = file_metadata(path)
+        if meta.get("fingerprint") == fp:
+            print(f"[N={n}] reusing {path} (same config)", file=sys.stderr)
+            return read_episodes(path), meta.get("skipped", [])
+    except (StoreError, OSError, ValueError):
+        pass
+    return None
+
+
+def evaluate(cfg, out: str | Path, runner=None) -> dict:
+    """Run the evaluation described by `cfg` into folder or URI `out`; returns the metrics dict.
+
+    Episodes are cut into units of `eval.unit_episodes` per team size; `runner` (default: in-process) runs
+    them, so --workers 0 and any number of Ray workers give identical episodes."""
     if cfg.eval.planner not in PLANNERS:
         raise ValueError(f"unknown planner {cfg.eval.planner!r}; available: {', '.join(PLANNERS)}")
-    out = Path(out)
+    if cfg.eval.unit_episodes < 1:
+        raise ValueError("eval.unit_episodes must be >= 1")
+    runner = runner or InProcessRunner()
+    out = str(out)
     t0 = time.perf_counter()
     maps, bad = load_maps(cfg)
     for b in bad:
-        print(f"skipped map {b['file']}: {b['reason']}")
+        print(f"skipped map {b['file']}: {b['reason']}", file=sys.stderr)
     if not maps:
         raise MapError(cfg.eval.maps, "none of the maps could be used (reasons above)")
-    atomic_write_table(maps_table(maps), out / "maps" / "maps.parquet", "maps")
+    atomic_write_table(maps_table(maps), fs.join(out, "maps", "maps.parquet"), "maps")
+    done: dict[int, tuple[list, list]] = {}
+    units, skipped_by_n = [], {}
+    for n in cfg.eval.robots:
+        reused = _reuse(fs.join(out, "episodes", f"n{n:02d}.parquet"), fingerprint(cfg, n), n)
+        if reused is not None:
+            done[n] = reused
+            continue
+        tasks, skipped = make_tasks(cfg, maps, n)
+        skipped_by_n[n] = skipped
+        for s in skipped:
+            print(f"[N={n}] skipped episode {s['episode']}: {s['reason']}", file=sys.stderr)
+        k = cfg.eval.unit_episodes
+        units += [Unit(f"n{n:02d}-u{j // k:03d}", {"n": n, "tasks": tasks[j:j + k]}, size=len(tasks[j:j + k]))
+                  for j in range(0, len(tasks), k)]
+    rows_by_n: dict[int, list] = {n: [] for n in skipped_by_n}
+    failures = []
+    ctx = {"config": to_dict(cfg), "maps": [(m.map_id, m.occupancy, m.source) for m in maps]}
+    bar = Progress(sum(u.size for u in units), f"[{cfg.eval.planner}]")
+    try:
+        for r in runner.imap_unordered("roken.eval.harness:eval_unit", ctx, units):
+            if r.ok:
+                rows_by_n[r.unit.payload["n"]] += r.value
+            else:
+                failures.append({"unit": r.unit.key, "team_size": r.unit.payload["n"], "error": r.error})
+            bar.update(r.unit.size)
+    finally:
+        runner.shutdown()
+    failed_n = {f["team_size"] for f in failures}
+    for n, rows in rows_by_n.items():
+        rows.sort(key=lambda r: r["seed"])
+        if n not in failed_n and rows:  # a team size with a failed unit is not stored: a re-run redoes it
+            atomic_write_table(episodes_table(rows), fs.join(out, "episodes", f"n{n:02d}.parquet"), "episodes",
+                               {"fingerprint": fingerprint(cfg, n), "skipped": skipped_by_n[n]})
+        done[n] = (rows, skipped_by_n[n])
     per_n, all_rows, skipped_all, table_rows = {}, [], {}, []
     for n in cfg.eval.robots:
-        rows, skipped = evaluate_team_size(cfg, maps, n, out)
+        rows, skipped = done[n]
         summary = summarize(rows)
         per_n[str(n)] = summary | {"skipped": len(skipped)}
         skipped_all[str(n)] = skipped
@@ -157,9 +192,12 @@ def evaluate(cfg, out: str | Path) -> dict:
         table_rows.append((f"{cfg.eval.planner}@{n}", summary))
     metrics = summarize(all_rows) | {
         "planner": cfg.eval.planner, "by_team_size": per_n, "skipped_episodes": skipped_all,
-        "bad_maps": bad, "maps": len(maps), "seconds": round(time.perf_counter() - t0, 2),
-        "config": to_dict(cfg),
+        "bad_maps": bad, "failures": failures, "maps": len(maps),
+        "seconds": round(time.perf_counter() - t0, 2), "workers": runner.workers, "config": to_dict(cfg),
     }
-    atomic_write_json(metrics, out / "metrics.json")
+    atomic_write_json(metrics, fs.join(out, "metrics.json"))
     print(format_table(table_rows))
+    if failures:
+        print(f"{len(failures)} unit(s) failed: {failures}; re-run the same command to retry them",
+              file=sys.stderr)
     return metrics

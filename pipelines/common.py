@@ -1,0 +1,64 @@
+"""What every pipeline shares: config flags, where to run (in-process, --local, a cluster), the runner.
+
+Where a pipeline runs:
+  --workers 0        in this process, no Ray (debugging: breakpoints and tracebacks work)
+  --local            a private Ray cluster on this machine with its cores; replaces ray.init(local_mode=True),
+                     which Ray removed in 2.55
+  --address H:P      an existing cluster (cluster/start-head.sh); under `ray job submit` the cluster is found
+                     from $RAY_ADDRESS without any flag
+With none of these and no $RAY_ADDRESS, the pipeline runs in-process.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # run from a checkout (or a job's uploaded working dir) without installing
+
+from roken.units import InProcessRunner, in_ray_job  # noqa: E402
+
+
+def add_common_args(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--config", help="YAML config file (see configs/)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override any config field, e.g. --set expert.batch_size=32")
+    ray_args = ap.add_argument_group("where to run")
+    ray_args.add_argument("--workers", type=int,
+                          help="Ray actors (default: one per CPU of the cluster); 0 = in-process, no Ray")
+    ray_args.add_argument("--local", action="store_true",
+                          help="start a private Ray cluster on this machine (laptop mode)")
+    ray_args.add_argument("--num-cpus", type=int, help="CPUs of the --local cluster (default: all cores)")
+    ray_args.add_argument("--address", help="join the Ray cluster at HOST:PORT (default: $RAY_ADDRESS)")
+
+
+def wants_ray(args) -> bool:
+    if args.workers == 0:
+        if args.local or args.address:
+            raise ValueError("--workers 0 runs in-process; drop --local / --address, or give --workers >= 1")
+        return False
+    return bool(args.local or args.address or os.environ.get("RAY_ADDRESS") or (args.workers or 0) > 0)
+
+
+def make_runner(args):
+    """The runner for these flags; connects to Ray only when it is needed (imports it only then too)."""
+    if not wants_ray(args):
+        return InProcessRunner()
+    from roken import ray_pool
+
+    resources = ray_pool.connect(args.address, args.local, args.num_cpus, code_root=str(ROOT))
+    cpus = int(resources.get("CPU", 1))
+    workers = args.workers or cpus
+    if workers > cpus:
+        print(f"note: {workers} workers on a cluster with {cpus} CPUs; the extra ones wait for free CPUs",
+              file=sys.stderr)
+    return ray_pool.RayRunner(workers)
+
+
+def explain_relative_out(out: str) -> None:
+    if "://" not in out and not os.path.isabs(out) and in_ray_job():
+        print(f"note: --out {out} is relative; inside a Ray job it is {os.path.abspath(out)}, the job's "
+              f"temporary working directory. Pass an absolute path or a URI (s3://, gs://) to keep it.",
+              file=sys.stderr)

@@ -1,0 +1,165 @@
+"""Expert dataset generation: maps -> tasks -> Laplacian expert -> scored episodes -> Parquet shards.
+
+The job is cut into units of `maps_per_unit` consecutive maps. Unit u is fully determined by the config and
+u, and is written as the pair of shards
+
+    maps/unit-{u:05d}.parquet   the unit's maps as planned on (store contract)
+    episodes/unit-{u:05d}.parquet   its episodes; metadata: config fingerprint + the unit's summary
+
+each atomically, maps first: an episodes shard under its final name means the unit is finished, so a
+re-run skips it, and a killed run leaves nothing half-written. Episode k of the map with global index i
+draws its team size from `team_sizes` and its task from the stream seeded by (seed, i, k); its id is
+"{map_id}-e{k:02d}". The same command therefore always yields the same ids and the same trajectories,
+whichever worker runs which unit and however often the run was interrupted.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..expert.laplacian import LaplacianExpert
+from ..world.grid import GridMap
+from ..world.loaders import MapError, find_map_files, load_map_file
+from ..world.maps import SPLITS, generate_map, split_size
+from ..world.tasks import TaskError, sample_task
+from . import fs
+from .store import StoreError, atomic_write_table, episode_record, episodes_table, file_metadata, maps_table
+
+
+def _paper_team_mix() -> dict[int, float]:
+    # The paper's mixed dataset is "heavily imbalanced towards the four-robot case" with 2..8 robots
+    # (Fig. "Dataset distribution"): 60 % four robots, the rest spread evenly over 2, 3, 5, 6, 7, 8.
+    return {2: 1.0, 3: 1.0, 4: 9.0, 5: 1.0, 6: 1.0, 7: 1.0, 8: 1.0}
+
+
+@dataclass
+class DatasetConfig:
+    maps: str = "train"  # "train", "eval", or a folder / glob / file of external maps
+    num_maps: int | None = None  # at most this many maps (default: the whole split or every file)
+    episodes_per_map: int = 10
+    team_sizes: dict[int, float] = field(default_factory=_paper_team_mix)  # N -> relative weight
+    maps_per_unit: int = 10  # maps per work unit (and per shard)
+    seed: int = 0
+    keep_failed: bool = False  # keep episodes the expert failed (flagged success=false) in the shards
+
+
+def check(dc: DatasetConfig) -> None:
+    if dc.episodes_per_map < 1 or dc.maps_per_unit < 1:
+        raise ValueError("dataset.episodes_per_map and dataset.maps_per_unit must be >= 1")
+    if not dc.team_sizes or any(n < 1 or w < 0 for n, w in dc.team_sizes.items()) \
+            or sum(dc.team_sizes.values()) <= 0:
+        raise ValueError(f"dataset.team_sizes must map team sizes >= 1 to weights >= 0 with a positive sum, "
+                         f"got {dc.team_sizes}; e.g. --set 'dataset.team_sizes={{4: 1}}'")
+
+
+def map_sources(dc: DatasetConfig, map_cfg) -> list[tuple[int, str, str | None]]:
+    """(global index, map id, file or None) of every map of the dataset, in order."""
+    if dc.maps in SPLITS:
+        n = split_size(map_cfg, dc.maps)
+        n = min(n, dc.num_maps) if dc.num_maps else n
+        return [(i, f"{dc.maps}-{i:06d}", None) for i in range(n)]
+    files = find_map_files(dc.maps)[:dc.num_maps or None]
+    out, seen = [], {}
+    for i, f in enumerate(files):
+        stem = f.stem
+        k = seen.get(stem, 0)
+        seen[stem] = k + 1
+        out.append((i, f"{stem}-{k}" if k else stem, str(Path(f).resolve())))
+    return out
+
+
+def plan_units(dc: DatasetConfig, map_cfg) -> list[dict]:
+    """Unit payloads: {"key": "unit-00003", "maps": [(index, map_id, file), ...]}."""
+    sources = map_sources(dc, map_cfg)
+    m = dc.maps_per_unit
+    return [{"key": f"unit-{u:05d}", "maps": sources[s:s + m]} for u, s in enumerate(range(0, len(sources), m))]
+
+
+def shard_paths(out: str, key: str) -> tuple[str, str]:
+    return fs.join(out, "maps", f"{key}.parquet"), fs.join(out, "episodes", f"{key}.parquet")
+
+
+def finished_summary(out: str, key: str, fingerprint: str) -> dict | None:
+    """The stored summary of a unit finished earlier with the same config, else None."""
+    _, ep_path = shard_paths(out, key)
+    if not fs.exists(ep_path):
+        return None
+    try:
+        meta = file_metadata(ep_path)
+    except (OSError, ValueError):
+        return None  # unreadable: regenerate it (the atomic rename replaces it)
+    if meta.get("fingerprint") != fingerprint:
+        raise StoreError(f"{ep_path} was made with a different config (fingerprint {meta.get('fingerprint')} "
+                         f"!= {fingerprint}); write to a new --out folder or delete the old one")
+    return meta.get("unit")
+
+
+def _load(entry, split: str, cfg) -> GridMap:
+    index, map_id, file = entry
+    if file is None:
+        return generate_map(cfg.map, split, index)
+    gm = load_map_file(file, cfg.map)
+    gm.map_id = map_id
+    return gm
+
+
+def _team_size(rng: np.random.Generator, mix: dict[int, float]) -> int:
+    sizes = sorted(mix)
+    w = np.array([mix[n] for n in sizes], dtype=float)
+    return int(sizes[rng.choice(len(sizes), p=w / w.sum())])
+
+
+def generate_unit(ctx: dict, payload: dict, cache: dict) -> dict:
+    """Worker function (roken.units): run one unit, write its two shards, return its small summary."""
+    from ..config import Config
+    from ..configtools import from_dict
+
+    if "cfg" not in cache:
+        cache["cfg"] = from_dict(Config, ctx["config"])
+    cfg = cache["cfg"]
+    dc = cfg.dataset
+    key, out = payload["key"], ctx["out"]
+    maps, bad, tasks, skipped = [], [], {}, []
+    for entry in payload["maps"]:
+        try:
+            gm = _load(entry, dc.maps, cfg)
+        except MapError as e:
+            bad.append({"file": e.path, "reason": e.reason})
+            continue
+        maps.append(gm)
+        index = entry[0]
+        for k in range(dc.episodes_per_map):
+            rng = np.random.default_rng([dc.seed, index, k])
+            n = _team_size(rng, dc.team_sizes)
+            try:
+                task = sample_task(gm, n, cfg.task, rng, seed=index * dc.episodes_per_map + k)
+            except TaskError as err:
+                skipped.append({"episode_id": f"{gm.map_id}-e{k:02d}", "reason": str(err)})
+                continue
+            tasks.setdefault(n, []).append((f"{gm.map_id}-e{k:02d}", task))
+    by_id = {m.map_id: m for m in maps}
+    expert = LaplacianExpert(cfg.expert, cfg.task)
+    rows, by_n, steps = [], {}, 0
+    for n in sorted(tasks):  # one expert call per team size: a batch holds one team size
+        group = tasks[n]
+        for i, ep in expert.run([t for _, t in group], by_id):
+            episode_id, task = group[i]
+            row = episode_record(episode_id, "laplacian", task, by_id[task.map_id], ep.positions, cfg.task,
+                                 task.seed)
+            stats = by_n.setdefault(str(n), [0, 0, 0])  # attempted, succeeded, kept
+            stats[0] += 1
+            stats[1] += int(row["success"])
+            steps += row["num_steps"]
+            if row["success"] or dc.keep_failed:
+                stats[2] += 1
+                rows.append(row)
+    rows.sort(key=lambda r: r["episode_id"])
+    summary = {"unit": key, "maps": len(maps), "episodes": len(rows), "by_team_size": by_n, "steps": steps,
+               "bad_maps": bad, "skipped": skipped}
+    maps_path, ep_path = shard_paths(out, key)
+    atomic_write_table(maps_table(maps), maps_path, "maps", {"fingerprint": ctx["fingerprint"]})
+    atomic_write_table(episodes_table(rows), ep_path, "episodes",
+                       {"fingerprint": ctx["fingerprint"], "unit": summary})
+    return summary

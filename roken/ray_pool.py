@@ -1,0 +1,153 @@
+"""The thin Ray layer: connect to a cluster, and run work units on a pool of actors.
+
+This is the only module in `roken` that imports Ray; everything it runs is plain `roken` code (see
+`roken.units`). The driver keeps at most `per_worker` units queued on each actor, so memory stays bounded
+however many thousand units a job has, and a worker never waits for its next unit. Actors are restarted by
+Ray when their process dies; the driver re-queues the units that were lost with it, up to `max_attempts`
+times, and reports a unit that keeps killing its worker as failed instead of retrying forever.
+"""
+from __future__ import annotations
+
+import os
+import secrets
+import sys
+from collections import deque
+from typing import Iterable, Iterator
+
+# Before Ray is imported: it reads the mode once. Token authentication stays on unless the user turned it
+# off explicitly (RAY_AUTH_MODE=disabled).
+os.environ.setdefault("RAY_AUTH_MODE", "token")
+
+import ray  # noqa: E402
+from ray.exceptions import (GetTimeoutError, ObjectLostError, OutOfMemoryError, RayActorError,
+                            WorkerCrashedError)
+
+from .units import Unit, UnitResult, call_unit, in_ray_job, resolve_function, worker_name  # noqa: E402
+
+# Failures of the process, not of the unit's code (that is caught inside call_unit): worth another attempt.
+RETRYABLE = (RayActorError, WorkerCrashedError, OutOfMemoryError, ObjectLostError)
+
+
+def connect(address: str | None = None, local: bool = False, num_cpus: int | None = None,
+            code_root: str | None = None) -> dict:
+    """Start or join a Ray cluster with token authentication on; returns the cluster's resources.
+
+    local=True starts a private cluster on this machine with `num_cpus` (default: every core) - the laptop
+    mode that replaces the `local_mode=True` Ray removed in 2.55. Otherwise join `address`, $RAY_ADDRESS
+    (set for `ray job submit` drivers), or a cluster started on this machine with `ray start`.
+    `code_root` is put on the workers' PYTHONPATH so they import this checkout without installing it
+    (a submitted job gets the same from its uploaded working directory instead).
+    """
+    if local and not _has_token():
+        # A private cluster gets a private secret; it lives in this process's environment only (the
+        # cluster processes started by ray.init inherit it), nothing is written to ~/.ray.
+        os.environ["RAY_AUTH_TOKEN"] = secrets.token_hex(32)
+    runtime_env = None
+    if code_root and not in_ray_job():
+        path = os.pathsep.join(p for p in (code_root, os.environ.get("PYTHONPATH", "")) if p)
+        runtime_env = {"env_vars": {"PYTHONPATH": path}}
+    kwargs = dict(runtime_env=runtime_env, logging_level="WARNING", log_to_driver=True)
+    if local:
+        ray.init(address="local", num_cpus=num_cpus or os.cpu_count(), include_dashboard=False,
+                 **kwargs)
+    else:
+        target = address or os.environ.get("RAY_ADDRESS") or "auto"
+        try:
+            ray.init(address=target, **kwargs)
+        except ConnectionError as e:
+            raise ConnectionError(
+                f"no Ray cluster at {target!r} ({e}). Start one with cluster/start-head.sh, pass "
+                f"--address HOST:PORT, or use --local for a cluster on this machine") from None
+    return ray.cluster_resources()
+
+
+def _has_token() -> bool:
+    path = os.environ.get("RAY_AUTH_TOKEN_PATH") or os.path.expanduser("~/.ray/auth_token")
+    return bool(os.environ.get("RAY_AUTH_TOKEN")) or os.path.isfile(path)
+
+
+def cluster_cpus() -> int:
+    return int(ray.cluster_resources().get("CPU", 1))
+
+
+@ray.remote(num_cpus=1, max_restarts=-1, max_task_retries=0)
+class UnitWorker:
+    def __init__(self, fn_ref: str):
+        self.fn = resolve_function(fn_ref)
+        self.ctx, self.ctx_id = None, None
+        self.cache: dict = {}
+
+    def name(self) -> str:
+        return worker_name()
+
+    def run(self, ctx_box: list, unit: Unit) -> UnitResult:
+        # ctx_box = [ObjectRef]: boxed so Ray does not fetch it for every call; fetched once per actor (and
+        # again after a restart), then kept with the worker's cache.
+        if self.ctx_id != ctx_box[0].hex():
+            self.ctx, self.ctx_id, self.cache = ray.get(ctx_box[0]), ctx_box[0].hex(), {}
+        return call_unit(self.fn, self.ctx, unit, self.cache)
+
+
+class RayRunner:
+    def __init__(self, workers: int, per_worker: int = 2, max_attempts: int = 3, log=None):
+        if workers < 1:
+            raise ValueError(f"RayRunner needs workers >= 1, got {workers}")
+        self.workers, self.per_worker, self.max_attempts = workers, per_worker, max_attempts
+        self.log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
+        self.actors: list = []
+        self.retries = 0
+        self.names: list[str] = []
+
+    def describe(self) -> str:
+        return f"Ray, {self.workers} actor(s): {', '.join(self.names)}"
+
+    def _start(self, fn_ref: str, ctx: dict) -> None:
+        self.ctx_box = [ray.put(ctx)]  # one copy in the object store, shared by every actor
+        self.actors = [UnitWorker.options(scheduling_strategy="SPREAD").remote(fn_ref)
+                       for _ in range(self.workers)]
+        try:
+            self.names = ray.get([a.name.remote() for a in self.actors], timeout=300)
+        except GetTimeoutError:
+            raise RuntimeError(f"{self.workers} workers did not start within 300 s; the cluster has "
+                               f"{ray.cluster_resources().get('CPU', 0):.0f} CPUs: lower --workers") from None
+
+    def imap_unordered(self, fn_ref: str, ctx: dict, units: Iterable[Unit]) -> Iterator[UnitResult]:
+        queue = deque((u, 1) for u in units)
+        if not queue:
+            return
+        self._start(fn_ref, ctx)
+        pending: dict = {}  # ObjectRef -> (unit, attempt, actor index, submit time)
+        load = [0] * len(self.actors)
+        while queue or pending:
+            while queue:
+                a = min(range(len(self.actors)), key=load.__getitem__)
+                if load[a] >= self.per_worker:
+                    break
+                unit, attempt = queue.popleft()
+                pending[self.actors[a].run.remote(self.ctx_box, unit)] = (unit, attempt, a)
+                load[a] += 1
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            for ref in ready:
+                unit, attempt, a = pending.pop(ref)
+                load[a] -= 1
+                try:
+                    result = ray.get(ref)
+                except RETRYABLE as e:
+                    reason = f"{type(e).__name__}: {str(e).splitlines()[0][:200]}"
+                    if attempt < self.max_attempts:
+                        self.retries += 1
+                        self.log(f"unit {unit.key}: worker lost ({type(e).__name__}); retry "
+                                 f"{attempt + 1}/{self.max_attempts}")
+                        queue.appendleft((unit, attempt + 1))
+                        continue
+                    result = UnitResult(unit, error=f"worker died {attempt} times: {reason}")
+                except Exception as e:  # noqa: BLE001  (e.g. a result that cannot be deserialised)
+                    result = UnitResult(unit, error=f"{type(e).__name__}: {str(e).splitlines()[0][:200]}")
+                result.attempts = attempt
+                yield result
+
+    def shutdown(self) -> None:
+        for a in self.actors:
+            ray.kill(a)
+        self.actors = []
+
