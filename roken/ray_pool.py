@@ -110,6 +110,7 @@ class RayRunner:
         except GetTimeoutError:
             raise RuntimeError(f"{self.workers} workers did not start within 300 s; the cluster has "
                                f"{ray.cluster_resources().get('CPU', 0):.0f} CPUs: lower --workers") from None
+        self.log(f"started {self.workers} Ray worker(s): {', '.join(self.names)}")
 
     def imap_unordered(self, fn_ref: str, ctx: dict, units: Iterable[Unit]) -> Iterator[UnitResult]:
         queue = deque((u, 1) for u in units)
@@ -151,3 +152,14 @@ class RayRunner:
             ray.kill(a)
         self.actors = []
 
+
+
+def read_ray_dataset(location: str, table: str = "episodes") -> "ray.data.Dataset":
+    """The shards of a dataset folder (local path or URI) as a Ray Dataset, with the same columns and
+    types as `roken.data.shards.read_table` (plain Arrow lists, no tensor extension types)."""
+    from .data import fs
+    from .data.shards import open_dataset
+
+    files = open_dataset(location, table).files  # the visible shards only, never a writer's temp file
+    filesystem, _ = fs.resolve(location)
+    return ray.data.read_parquet(files, filesystem=filesystem)
