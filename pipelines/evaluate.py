@@ -20,7 +20,7 @@ from roken.data.store import StoreError
 from roken.eval.harness import evaluate
 
 
-def main(argv=None) -> int:
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--planner", help="planner name (laplacian)")
     ap.add_argument("--robots", help="team size or list, e.g. 4 or 2,4,8")
@@ -30,14 +30,23 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, help="task seed")
     ap.add_argument("--out", required=True, help="output folder or URI (maps/, episodes/, metrics.json)")
     add_common_args(ap)
-    args = ap.parse_args(argv)
-    overrides = list(args.set)
+    return ap
+
+
+def overrides(args) -> list[str]:
+    """--set flags, then the named flags (which win), as dotted config overrides."""
+    out = list(args.set)
     for key, val in (("planner", args.planner), ("robots", args.robots), ("episodes", args.episodes),
                      ("maps", args.maps), ("num_maps", args.num_maps), ("seed", args.seed)):
         if val is not None:
-            overrides.append(f"eval.{key}={val}")
+            out.append(f"eval.{key}={val}")
+    return out
+
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
     try:
-        cfg = load_config(args.config, overrides)
+        cfg = load_config(args.config, overrides(args))
         explain_relative_out(args.out)
         metrics = evaluate(cfg, args.out, make_runner(args))
     except (ConfigError, StoreError, ValueError, OSError, ConnectionError) as e:

@@ -21,7 +21,7 @@ from roken.data.store import StoreError
 from roken.world.loaders import MapError
 
 
-def main(argv=None) -> int:
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--maps", help="train, eval, or a folder / glob / file of .map, .png, .npy maps")
     ap.add_argument("--num-maps", type=int, help="use at most this many maps")
@@ -29,14 +29,23 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, help="task seed")
     ap.add_argument("--out", required=True, help="output folder or URI (s3://..., gs://..., file://...)")
     add_common_args(ap)
-    args = ap.parse_args(argv)
-    overrides = list(args.set)
+    return ap
+
+
+def overrides(args) -> list[str]:
+    """--set flags, then the named flags (which win), as dotted config overrides."""
+    out = list(args.set)
     for key, val in (("maps", args.maps), ("num_maps", args.num_maps),
                      ("episodes_per_map", args.episodes_per_map), ("seed", args.seed)):
         if val is not None:
-            overrides.append(f"dataset.{key}={val}")
+            out.append(f"dataset.{key}={val}")
+    return out
+
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
     try:
-        cfg = load_config(args.config, overrides)
+        cfg = load_config(args.config, overrides(args))
         explain_relative_out(args.out)
         runner = make_runner(args)
         manifest = build_dataset(cfg, args.out, runner)

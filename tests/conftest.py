@@ -20,3 +20,35 @@ def open_map(size=60, canvas=None):
     occ = np.zeros((size, size), np.uint8)
     occ[0, :] = occ[-1, :] = occ[:, 0] = occ[:, -1] = 1
     return occ
+
+
+def free_ports(n: int) -> list[int]:
+    """n distinct TCP ports free on 127.0.0.1 right now."""
+    import socket
+
+    socks = []
+    for _ in range(n):
+        s = socket.socket()
+        s.bind(("127.0.0.1", 0))
+        socks.append(s)
+    ports = [s.getsockname()[1] for s in socks]
+    for s in socks:
+        s.close()
+    return ports
+
+
+def short_tmpdir(prefix: str) -> str:
+    """A short temp dir: Ray puts Unix sockets under its temp dir, and socket paths are limited to 107 bytes."""
+    import tempfile
+
+    return tempfile.mkdtemp(prefix=prefix, dir="/tmp")
+
+
+@pytest.fixture
+def ray_tmp():
+    """A short, private RAY_TMPDIR for a test's local cluster, removed afterwards."""
+    import shutil
+
+    d = short_tmpdir("rk")
+    yield d
+    shutil.rmtree(d, ignore_errors=True)

@@ -1,0 +1,192 @@
+"""Dataset generation: in-process and on a local Ray cluster, resume after a kill, manifest, read path."""
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import pytest
+
+from roken.config import load_config
+from roken.data import fs
+from roken.data.build import build_dataset
+from roken.data.shards import read_table
+from roken.data.store import read_run
+from roken.units import InProcessRunner
+
+ROOT = Path(__file__).resolve().parents[1]
+GENERATE = [sys.executable, str(ROOT / "pipelines" / "generate.py")]
+# 8 units of one map x 3 episodes: small, but enough units to kill a run between them.
+SMALL = ["--maps", "train", "--num-maps", "8", "--episodes-per-map", "3", "--set", "dataset.maps_per_unit=1",
+         "--set", "expert.batch_size=8", "--set", "dataset.keep_failed=true"]
+EXPECTED_IDS = {f"train-{i:06d}-e{k:02d}" for i in range(8) for k in range(3)}
+
+
+def run(args, env=None, timeout=300, **kw):
+    return subprocess.run(GENERATE + args, capture_output=True, text=True, timeout=timeout,
+                          env={**os.environ, **(env or {})}, **kw)
+
+
+def shard_bytes(out: Path) -> dict:
+    return {p.name: p.read_bytes() for p in sorted((out / "episodes").glob("*.parquet"))}
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """The small dataset made in-process: every other run of the same command must equal it byte for byte."""
+    out = tmp_path_factory.mktemp("ref") / "ds"
+    r = run(SMALL + ["--out", str(out), "--workers", "0"])
+    assert r.returncode == 0, r.stderr
+    return out
+
+
+def test_in_process_dataset_contract(reference):
+    maps, eps = read_run(reference)  # the store's validator: schema, sizes, maps present, unique ids
+    assert {e["episode_id"] for e in eps} == EXPECTED_IDS
+    assert len(maps) == 8 and len(list((reference / "episodes").glob("*.parquet"))) == 8
+    m = json.loads((reference / "manifest.json").read_text())
+    assert m["status"] == "complete" and m["units_total"] == 8 and m["episodes"] == 24
+    assert [s["unit"] for s in m["shards"]] == [f"unit-{u:05d}" for u in range(8)]
+    assert sum(s["rows"] for s in m["shards"]) == 24 and m["failures"] == []
+    assert m["config"]["dataset"]["episodes_per_map"] == 3 and m["code_version"]["python"]
+    assert sum(v["attempted"] for v in m["by_team_size"].values()) == 24
+    assert set(m["by_team_size"]) <= {str(n) for n in range(2, 9)}
+    for s in m["shards"]:  # row counts in the manifest are the files' row counts
+        assert pq.read_metadata(reference / s["episodes"]).num_rows == s["rows"]
+
+
+def test_rerun_skips_finished_shards_and_refuses_another_config(reference, tmp_path):
+    out = tmp_path / "ds"
+    shutil.copytree(reference, out)
+    (out / "episodes" / "unit-00003.parquet").unlink()  # as if the run had stopped before this unit
+    before = {p.name: p.stat().st_mtime_ns for p in (out / "episodes").glob("*.parquet")}
+    r = run(SMALL + ["--out", str(out), "--workers", "0"])
+    assert r.returncode == 0, r.stderr
+    assert "7 finished earlier, 1 to run" in r.stderr
+    after = {p.name: p.stat().st_mtime_ns for p in (out / "episodes").glob("*.parquet")}
+    assert all(after[k] == v for k, v in before.items())  # finished shards untouched
+    assert shard_bytes(out) == shard_bytes(reference)
+    r = run(SMALL + ["--out", str(out), "--workers", "0", "--episodes-per-map", "4"])
+    assert r.returncode == 2 and "dataset.episodes_per_map: 3 -> 4" in r.stderr
+    assert shard_bytes(out) == shard_bytes(reference)  # nothing already written is lost
+
+
+def test_local_ray_cluster_gives_the_same_dataset(reference, tmp_path, ray_tmp):
+    out = tmp_path / "ds"
+    r = run(SMALL + ["--out", str(out), "--local", "--num-cpus", "2"], env={"RAY_TMPDIR": ray_tmp})
+    assert r.returncode == 0, r.stderr
+    assert "started 2 Ray worker(s)" in r.stderr and "episodes/s" in r.stdout
+    assert shard_bytes(out) == shard_bytes(reference)
+    read_run(out)
+
+
+def test_killed_run_resumes_without_loss_or_duplicates(reference, tmp_path, ray_tmp):
+    out = tmp_path / "ds"
+    env = {"RAY_TMPDIR": ray_tmp}
+    p = subprocess.Popen(GENERATE + SMALL + ["--out", str(out), "--local", "--num-cpus", "2"],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+                         env={**os.environ, **env})
+    t0 = time.time()
+    while time.time() - t0 < 240 and len(list((out / "episodes").glob("*.parquet"))) < 2:
+        time.sleep(0.05)
+    os.killpg(p.pid, signal.SIGKILL)  # the driver and its local cluster, mid-run
+    p.wait()
+    done_at_kill = len(list((out / "episodes").glob("*.parquet")))
+    assert 2 <= done_at_kill < 8, "the run should have been killed midway"
+    r = run(SMALL + ["--out", str(out), "--local", "--num-cpus", "2"], env=env)
+    assert r.returncode == 0, r.stderr
+    # workers already busy may still finish their unit after the driver died: at least the shards seen
+    # at the kill are reused, and some units are left to run
+    reused = int(re.search(r"(\d+) finished earlier", r.stderr).group(1))
+    assert done_at_kill <= reused < 8
+    _, eps = read_run(out)  # raises on duplicated ids
+    assert sorted(e["episode_id"] for e in eps) == sorted(EXPECTED_IDS)
+    assert shard_bytes(out) == shard_bytes(reference)
+    assert not list(out.rglob("*.tmp"))  # the killed writer's temporaries were cleaned up
+
+
+def test_external_maps_with_a_corrupt_file(tmp_path):
+    import numpy as np
+
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    for i in range(2):
+        occ = np.zeros((70, 70), np.uint8)
+        occ[20 + 10 * i:30 + 10 * i, 30:40] = 1
+        np.save(maps / f"room{i}.npy", occ)
+    (maps / "broken.map").write_text("type octile\nheight 3\n")
+    (maps / "garbage.png").write_bytes(b"not a png")
+    out = tmp_path / "ds"
+    r = run(["--maps", str(maps), "--episodes-per-map", "2", "--out", str(out), "--workers", "0",
+             "--set", "dataset.keep_failed=true"])
+    assert r.returncode == 0, r.stderr
+    m = json.loads((out / "manifest.json").read_text())
+    assert sorted(Path(b["file"]).name for b in m["bad_maps"]) == ["broken.map", "garbage.png"]
+    assert all(b["reason"] for b in m["bad_maps"])
+    maps_read, eps = read_run(out)
+    assert set(maps_read) == {"room0", "room1"} and len(eps) == 4
+
+
+def test_read_path_pyarrow_pandas_and_uri(reference):
+    table = read_table(str(reference))
+    assert table.num_rows == 24
+    for f in table.schema:  # plain Arrow types only: no extension types inside the files
+        assert not isinstance(f.type, __import__("pyarrow").ExtensionType)
+    df = table.to_pandas()
+    assert list(df.columns) == table.column_names and len(df) == 24
+    uri = "file://" + str(reference)
+    assert read_table(uri, "maps").num_rows == 8
+    maps, eps = read_run(uri)
+    assert len(eps) == 24
+
+
+def test_uri_writes_are_atomic_and_joined_correctly(tmp_path, monkeypatch):
+    assert fs.join("s3://bucket/prefix", "episodes", "a.parquet") == "s3://bucket/prefix/episodes/a.parquet"
+    assert fs.join("s3://b/p/?region=x", "m.json") == "s3://b/p/m.json?region=x"
+    target = "file://" + str(tmp_path / "sub" / "x.bin")
+    fs.write_atomic(target, b"abc")
+    assert (tmp_path / "sub" / "x.bin").read_bytes() == b"abc"
+
+    real_write = Path.write_bytes
+
+    def half_then_fail(self, data):  # the disk fills up half way through the file
+        real_write(self, data[: len(data) // 2])
+        raise OSError("No space left on device")
+
+    monkeypatch.setattr(Path, "write_bytes", half_then_fail)
+    with pytest.raises(OSError, match="No space"):
+        fs.write_atomic(tmp_path / "sub" / "y.bin", b"0123456789")
+    assert sorted(p.name for p in (tmp_path / "sub").iterdir()) == ["x.bin"]  # no partial file, no temp
+
+
+def test_build_dataset_api_reports_a_failing_unit(tmp_path, monkeypatch):
+    """A unit whose code raises is listed in the manifest; the other units are kept; a re-run finishes."""
+    cfg = load_config(None, ["dataset.num_maps=3", "dataset.episodes_per_map=1", "dataset.maps_per_unit=1",
+                             "expert.batch_size=4"])
+    import roken.data.generation as gen
+
+    real = gen.generate_unit
+
+    def flaky(ctx, payload, cache):
+        if payload["key"] == "unit-00001":
+            raise RuntimeError("simulated bug")
+        return real(ctx, payload, cache)
+
+    monkeypatch.setattr(gen, "generate_unit", flaky)
+    m = build_dataset(cfg, str(tmp_path), InProcessRunner())
+    assert m["status"] == "incomplete" and [f["unit"] for f in m["failures"]] == ["unit-00001"]
+    assert "simulated bug" in m["failures"][0]["error"] and len(m["shards"]) == 2
+    monkeypatch.setattr(gen, "generate_unit", real)
+    m = build_dataset(cfg, str(tmp_path), InProcessRunner())
+    assert m["status"] == "complete" and len(m["shards"]) == 3
+
+
+def test_bad_team_sizes_are_rejected(tmp_path):
+    r = run(["--out", str(tmp_path / "o"), "--workers", "0", "--set", "dataset.team_sizes={4: 0}"])
+    assert r.returncode == 2 and "dataset.team_sizes" in r.stderr
+    assert not (tmp_path / "o").exists()  # refused before anything was written
