@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import secrets
 import sys
+import time
 from collections import deque
 from typing import Iterable, Iterator
 
@@ -97,11 +98,13 @@ class RayRunner:
         self.actors: list = []
         self.retries = 0
         self.names: list[str] = []
+        self.startup_seconds = 0.0  # creating the actors until all answered
 
     def describe(self) -> str:
         return f"Ray, {self.workers} actor(s): {', '.join(self.names)}"
 
     def _start(self, fn_ref: str, ctx: dict) -> None:
+        t0 = time.perf_counter()
         self.ctx_box = [ray.put(ctx)]  # one copy in the object store, shared by every actor
         self.actors = [UnitWorker.options(scheduling_strategy="SPREAD").remote(fn_ref)
                        for _ in range(self.workers)]
@@ -110,6 +113,7 @@ class RayRunner:
         except GetTimeoutError:
             raise RuntimeError(f"{self.workers} workers did not start within 300 s; the cluster has "
                                f"{ray.cluster_resources().get('CPU', 0):.0f} CPUs: lower --workers") from None
+        self.startup_seconds = time.perf_counter() - t0
         self.log(f"started {self.workers} Ray worker(s): {', '.join(self.names)}")
 
     def imap_unordered(self, fn_ref: str, ctx: dict, units: Iterable[Unit]) -> Iterator[UnitResult]:

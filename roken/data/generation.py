@@ -40,7 +40,7 @@ class DatasetConfig:
     num_maps: int | None = None  # at most this many maps (default: the whole split or every file)
     episodes_per_map: int = 10
     team_sizes: dict[int, float] = field(default_factory=_paper_team_mix)  # N -> relative weight
-    maps_per_unit: int = 10  # maps per work unit (and per shard)
+    maps_per_unit: int = 20  # maps per work unit and shard: 200 episodes, so each team size gets a real batch
     seed: int = 0
     keep_failed: bool = False  # keep episodes the expert failed (flagged success=false) in the shards
 
