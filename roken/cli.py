@@ -30,10 +30,10 @@ def cmd_plot(args) -> int:
 
 
 def cmd_validate(args) -> int:
-    from .data.store import read_run
+    from .data.store import check_manifest, read_run
 
     maps, episodes = read_run(args.run)
-    print(f"{args.run}: {len(maps)} maps, {len(episodes)} episodes, schema ok")
+    print(f"{args.run}: {len(maps)} maps, {len(episodes)} episodes, schema ok, {check_manifest(args.run, episodes)}")
     return 0
 
 

@@ -58,6 +58,8 @@ def test_in_process_dataset_contract(reference):
     assert set(m["by_team_size"]) <= {str(n) for n in range(2, 9)}
     for s in m["shards"]:  # row counts in the manifest are the files' row counts
         assert pq.read_metadata(reference / s["episodes"]).num_rows == s["rows"]
+    r = subprocess.run([sys.executable, "-m", "roken", "validate", str(reference)], capture_output=True, text=True)
+    assert r.returncode == 0 and "manifest complete, 8 shards" in r.stdout, r.stdout + r.stderr
 
 
 def test_rerun_skips_finished_shards_and_refuses_another_config(reference, tmp_path):

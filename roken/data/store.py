@@ -212,3 +212,26 @@ def read_run(folder: str | Path) -> tuple[dict[str, GridMap], list[dict]]:
         dup = sorted({i for i in ids if ids.count(i) > 1})[:5]
         raise StoreError(f"{folder}: duplicated episode ids {dup}")
     return maps, episodes
+
+
+def check_manifest(folder: str | Path, episodes: list[dict]) -> str:
+    """Compare a dataset's manifest.json with its files: every listed shard present with its row count and no
+    shard missing from the list. Returns a one-line description; raises StoreError on a mismatch."""
+    path = fs.join(folder, "manifest.json")
+    if not fs.exists(path):
+        return "no manifest"
+    m = read_json(path)
+    if "shards" not in m:
+        return f"manifest status {m.get('status')!r} (run not finished: re-run its command)"
+    listed = {fs.join(folder, s["episodes"]): s["rows"] for s in m["shards"]}
+    present = set(fs.list_files(fs.join(folder, "episodes"), ".parquet"))
+    if set(listed) != present:
+        raise StoreError(f"{folder}: manifest lists {len(listed)} episode shards, the folder has {len(present)} "
+                         f"(e.g. {sorted(set(listed) ^ present)[:3]}); re-run the generating command")
+    counts: dict[str, int] = {}
+    for f in present:
+        counts[f] = pq.read_metadata(fs.resolve(f)[1], filesystem=fs.resolve(f)[0]).num_rows
+    bad = [f for f in present if counts[f] != listed[f]]
+    if bad or m.get("episodes") != len(episodes):
+        raise StoreError(f"{folder}: row counts differ from manifest.json ({bad[:3] or 'total'})")
+    return f"manifest {m.get('status')}, {len(listed)} shards"
