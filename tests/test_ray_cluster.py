@@ -72,6 +72,8 @@ def test_job_submit_generates_20_maps(head, tmp_path):
     assert len(maps) == 20
     m = json.loads((out / "manifest.json").read_text())
     assert m["status"] == "complete" and m["throughput"]["workers"] == 2
+    # the job ran the uploaded copy of the code (complete, or imports would fail), not this checkout
+    assert Path(m["code_version"]["path"]) != ROOT and "runtime_resources" in m["code_version"]["path"]
     print(f"20 maps via ray job submit: {seconds:.1f} s including the head start")
     assert seconds < 120
 

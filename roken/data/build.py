@@ -42,7 +42,7 @@ def code_version() -> dict:
                              timeout=10).stdout.strip() or None
     except (OSError, subprocess.SubprocessError):
         sha = None
-    return {"roken": version, "git": sha, "python": platform.python_version()}
+    return {"roken": version, "git": sha, "python": platform.python_version(), "path": str(root)}
 
 
 def _check_existing(out: str, fp: str, cfg_dict: dict) -> None:
