@@ -34,6 +34,11 @@ def add_common_args(ap: argparse.ArgumentParser) -> None:
     ray_args.add_argument("--address", help="join the Ray cluster at HOST:PORT (default: $RAY_ADDRESS)")
 
 
+def named_overrides(args, section: str, names: tuple[str, ...]) -> list[str]:
+    """--set flags, then the named flags that were given (they win), as `section.name=value` overrides."""
+    return list(args.set) + [f"{section}.{n}={getattr(args, n)}" for n in names if getattr(args, n) is not None]
+
+
 def wants_ray(args) -> bool:
     if args.workers == 0:
         if args.local or args.address:

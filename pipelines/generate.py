@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from common import add_common_args, explain_relative_out, make_runner
+from common import add_common_args, explain_relative_out, make_runner, named_overrides
 
 from roken.config import ConfigError, load_config
 from roken.data.build import build_dataset
@@ -33,13 +33,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 def overrides(args) -> list[str]:
-    """--set flags, then the named flags (which win), as dotted config overrides."""
-    out = list(args.set)
-    for key, val in (("maps", args.maps), ("num_maps", args.num_maps),
-                     ("episodes_per_map", args.episodes_per_map), ("seed", args.seed)):
-        if val is not None:
-            out.append(f"dataset.{key}={val}")
-    return out
+    return named_overrides(args, "dataset", ("maps", "num_maps", "episodes_per_map", "seed"))
 
 
 def main(argv=None) -> int:

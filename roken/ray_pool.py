@@ -67,10 +67,6 @@ def _has_token() -> bool:
     return bool(os.environ.get("RAY_AUTH_TOKEN")) or os.path.isfile(path)
 
 
-def cluster_cpus() -> int:
-    return int(ray.cluster_resources().get("CPU", 1))
-
-
 @ray.remote(num_cpus=1, max_restarts=-1, max_task_retries=0)
 class UnitWorker:
     def __init__(self, fn_ref: str):

@@ -42,10 +42,6 @@ def join(location: str | Path, *parts: str) -> str:
     return base + sep + query
 
 
-def is_local(location: str | Path) -> bool:
-    return isinstance(resolve(location)[0], pafs.LocalFileSystem)
-
-
 def exists(location: str | Path) -> bool:
     fs, path = resolve(location)
     return fs.get_file_info(path).type != pafs.FileType.NotFound

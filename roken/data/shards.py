@@ -17,7 +17,7 @@ def open_dataset(location: str, table: str = "episodes") -> pads.Dataset:
     """A lazy pyarrow dataset over `location/table/*.parquet` (filters and column selection push down)."""
     if table not in TABLES:
         raise ValueError(f"table must be one of {TABLES}, got {table!r}")
-    filesystem, path = fs.resolve(fs.join(location, table))
+    filesystem, _ = fs.resolve(location)
     files = [fs.resolve(f)[1] for f in fs.list_files(fs.join(location, table), ".parquet")]
     if not files:
         raise FileNotFoundError(f"{fs.join(location, table)}: no .parquet shards; is {location} a dataset folder "

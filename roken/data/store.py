@@ -228,10 +228,8 @@ def check_manifest(folder: str | Path, episodes: list[dict]) -> str:
     if set(listed) != present:
         raise StoreError(f"{folder}: manifest lists {len(listed)} episode shards, the folder has {len(present)} "
                          f"(e.g. {sorted(set(listed) ^ present)[:3]}); re-run the generating command")
-    counts: dict[str, int] = {}
-    for f in present:
-        counts[f] = pq.read_metadata(fs.resolve(f)[1], filesystem=fs.resolve(f)[0]).num_rows
-    bad = [f for f in present if counts[f] != listed[f]]
+    filesystem, _ = fs.resolve(folder)
+    bad = [f for f in present if pq.read_metadata(fs.resolve(f)[1], filesystem=filesystem).num_rows != listed[f]]
     if bad or m.get("episodes") != len(episodes):
         raise StoreError(f"{folder}: row counts differ from manifest.json ({bad[:3] or 'total'})")
     return f"manifest {m.get('status')}, {len(listed)} shards"
