@@ -52,3 +52,18 @@ def ray_tmp():
     d = short_tmpdir("rk")
     yield d
     shutil.rmtree(d, ignore_errors=True)
+
+
+@pytest.fixture(scope="session")
+def expert_dataset(tmp_path_factory):
+    """A small real expert dataset (6 maps x 4 episodes, mixed team sizes) made in-process, for the sample
+    and model tests."""
+    from roken.config import load_config
+    from roken.data.build import build_dataset
+    from roken.units import InProcessRunner
+
+    out = tmp_path_factory.mktemp("expert") / "ds"
+    cfg = load_config(None, ["dataset.num_maps=6", "dataset.episodes_per_map=4", "dataset.maps_per_unit=6",
+                             "dataset.team_sizes={2: 1, 3: 1, 4: 2, 6: 1}", "dataset.seed=3"])
+    build_dataset(cfg, str(out), InProcessRunner())
+    return str(out)

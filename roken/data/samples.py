@@ -1,0 +1,296 @@
+"""Training samples for the Roken DiT, cut from expert episodes (paper: "Dataset Collection", appendix tables).
+
+One sample is one episode at one time t, padded to `max_robots` robot tokens (R):
+
+  chunk      (R, H, 2)  the next H = 16 moves of every robot, one every `interval` = 4 expert steps. Relative
+                        representation (paper): each move divided by interval * max_step = 2 m, so a full-speed
+                        move has norm 1. Absolute (ablation): the positions themselves scaled to [-1, 1].
+  start      (R, 2)     positions at t in metres: the token's PE(p_0) and the origin of the relative chunk
+  rel_goal   (R, 2)     (goal - start) / (canvas / 2) for the leader, 0 for followers
+  goal_mask  (R,)       1 for the leader (the robot given the goal)
+  traj_mask  (R,)       1 for robots whose chunk is a fixed condition (masked training), 0 = generated
+  robot_mask (R,)       True for real robots, False for padding (the attention key-padding mask)
+  waypoints  (R, K, 2)  5 points every 8 m along each robot's future path (the end point once it is
+                        shorter, for the leader the goal), relative to start / (K * 8 m)
+  occ_small  (R, 7, 7)  occupancy around each robot's cell; occ_large (R, 7, 7): 21 x 21 max-pooled by 3
+  map        (3, S, S)  occupancy, start heat-map, goal heat-map (Gaussian kernels), S = canvas = 140
+  sdf        (S, S)     signed distance (metres) at cell centres, for the SDF loss
+
+The goal is sampled along the leader's future trajectory: with `final_goal_prob` the task's goal, otherwise
+the leader's position at a random later step t_g, and then the sample is the sub-episode that ends at t_g
+(every robot holds its t_g position afterwards), so chunk, waypoints and goal stay consistent.
+
+Augmentation: a random element of the dihedral group (the 4 exact 90-degree turns, each with or without a
+mirror flip) applied to the map, the SDF and every position; these keep every clearance exactly, so expert
+trajectories stay collision-free. Beyond the paper we also shuffle the robot order (the model must not learn
+anything from token slots); arbitrary-angle rotations are not used because resampling the grid is not exact.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pyarrow as pa
+
+from ..world.geometry import signed_distance_field
+from . import shards
+
+SAMPLE_KEYS = ("chunk", "start", "rel_goal", "goal", "goal_mask", "traj_mask", "robot_mask", "waypoints",
+               "occ_small", "occ_large", "map", "sdf", "num_robots")
+
+
+@dataclass
+class SampleConfig:
+    horizon: int = 16  # action chunk length H (paper)
+    interval: int = 4  # expert steps per chunk move (paper: trajectory sampling interval)
+    max_step: float = 0.5  # metres per expert step (paper); a chunk move is normalised by interval * max_step
+    representation: str = "relative"  # "relative" (paper) or "absolute" (the paper's ablation)
+    max_robots: int = 10  # robot tokens per sample (paper: 10)
+    canvas: int = 140  # map side in cells (paper)
+    num_waypoints: int = 5  # K (paper)
+    waypoint_spacing: float = 8.0  # metres (paper)
+    patch: int = 7  # local occupancy patch side (paper)
+    large_scale: int = 3  # the large patch covers patch * large_scale cells, max-pooled back to patch
+    heatmap_sigma: float = 2.0  # Gaussian kernel of the start / goal heat-maps, metres
+    final_goal_prob: float = 0.5  # chance the goal is the task's goal rather than a point along the way
+    condition_prob: float = 0.3  # chance a team of 2+ gets a random proper subset of robots as conditions
+    augment: bool = True  # random dihedral transform of map and trajectories
+    shuffle_robots: bool = True  # random robot order
+    team_size_weights: dict[int, float] = field(default_factory=dict)  # resample episodes by team size; {} = as stored
+
+    @property
+    def step_scale(self) -> float:
+        return self.interval * self.max_step
+
+    @property
+    def waypoint_scale(self) -> float:
+        return self.num_waypoints * self.waypoint_spacing
+
+    @property
+    def pos_scale(self) -> float:
+        return self.canvas / 2.0
+
+
+def check(cfg: SampleConfig) -> None:
+    if cfg.representation not in ("relative", "absolute"):
+        raise ValueError(f"samples.representation must be 'relative' or 'absolute', got {cfg.representation!r}")
+    if cfg.horizon < 1 or cfg.interval < 1 or cfg.max_robots < 1 or cfg.num_waypoints < 1:
+        raise ValueError("samples.horizon, interval, max_robots and num_waypoints must be >= 1")
+    if cfg.patch % 2 == 0:
+        raise ValueError(f"samples.patch must be odd (a patch centred on the robot's cell), got {cfg.patch}")
+    if not 0 <= cfg.condition_prob <= 1 or not 0 <= cfg.final_goal_prob <= 1:
+        raise ValueError("samples.condition_prob and samples.final_goal_prob are probabilities in [0, 1]")
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Exact dihedral transforms of a square S x S grid and of (x, y) points on it (ARCHITECTURE.md conventions).
+# np.rot90 maps old cell (r, c) to new cell (S-1-c, r), i.e. the point (x, y) to (y, S - x); a left-right
+# flip maps (x, y) to (S - x, y).
+
+def transform_grid(a: np.ndarray, element: int) -> np.ndarray:
+    """Apply dihedral element 0..7 (element % 4 quarter turns, then a flip if element >= 4) to (..., S, S)."""
+    a = np.rot90(a, element % 4, axes=(-2, -1))
+    return a[..., :, ::-1] if element >= 4 else a
+
+
+def transform_points(p: np.ndarray, element: int, size: int) -> np.ndarray:
+    """The same transform for points (..., 2) = (x, y) in metres."""
+    x, y = p[..., 0], p[..., 1]
+    for _ in range(element % 4):
+        x, y = y, size - x
+    if element >= 4:
+        x = size - x
+    return np.stack([x, y], axis=-1).astype(p.dtype, copy=False)
+
+
+# ---------------------------------------------------------------------------------------------------------
+
+class EpisodeBank:
+    """Episodes and their maps as flat numpy arrays (zero-copy from Arrow), indexable by episode.
+
+    positions of episode i: flat[offsets[i]:offsets[i+1]].reshape(T+1, N, 2). Maps are stacked
+    (M, S, S) uint8; the SDF of a map is computed on first use and cached.
+    """
+
+    def __init__(self, flat: np.ndarray, offsets: np.ndarray, num_robots: np.ndarray, num_steps: np.ndarray,
+                 leader: np.ndarray, goal: np.ndarray, map_index: np.ndarray, occupancy: np.ndarray,
+                 episode_ids: list[str], map_ids: list[str]):
+        self.flat, self.offsets = flat, offsets
+        self.num_robots, self.num_steps, self.leader = num_robots, num_steps, leader
+        self.goal, self.map_index, self.occupancy = goal, map_index, occupancy
+        self.episode_ids, self.map_ids = episode_ids, map_ids
+        self._sdf: dict[int, np.ndarray] = {}
+        expected = (num_steps.astype(np.int64) + 1) * num_robots * 2
+        bad = np.flatnonzero(np.diff(offsets) != expected)
+        if len(bad):
+            raise ValueError(f"episode {episode_ids[bad[0]]}: positions hold {np.diff(offsets)[bad[0]]} values, "
+                             f"expected (num_steps + 1) * num_robots * 2 = {expected[bad[0]]}")
+
+    def __len__(self) -> int:
+        return len(self.num_robots)
+
+    @classmethod
+    def from_arrow(cls, episodes: pa.Table, maps: pa.Table, canvas: int = 140) -> "EpisodeBank":
+        map_ids = maps.column("map_id").to_pylist()
+        lookup = {m: k for k, m in enumerate(map_ids)}
+        occ = np.ones((len(map_ids), canvas, canvas), dtype=np.uint8)
+        for k, (h, w, b) in enumerate(zip(maps.column("height").to_pylist(), maps.column("width").to_pylist(),
+                                          maps.column("occupancy").to_pylist())):
+            if h > canvas or w > canvas:
+                raise ValueError(f"map {map_ids[k]} is {h} x {w}, larger than the {canvas} x {canvas} canvas; "
+                                 f"set samples.canvas to the canvas the dataset was generated on")
+            occ[k, :h, :w] = np.frombuffer(b, dtype=np.uint8).reshape(h, w)
+        ep_maps = episodes.column("map_id").to_pylist()
+        missing = sorted(set(ep_maps) - lookup.keys())
+        if missing:
+            raise ValueError(f"episodes refer to maps not in the maps table: {missing[:5]}; "
+                             f"read the maps/ shards of the same dataset folder")
+        pos = episodes.column("positions").combine_chunks()
+        return cls(pos.values.to_numpy(zero_copy_only=False), pos.offsets.to_numpy(),
+                   episodes.column("num_robots").to_numpy(), episodes.column("num_steps").to_numpy(),
+                   episodes.column("leader").to_numpy(),
+                   np.asarray(episodes.column("goal").to_pylist(), dtype=np.float32).reshape(-1, 2),
+                   np.asarray([lookup[m] for m in ep_maps], dtype=np.int64), occ,
+                   episodes.column("episode_id").to_pylist(), map_ids)
+
+    @classmethod
+    def from_folder(cls, location: str, canvas: int = 140, successful_only: bool = True) -> "EpisodeBank":
+        """A dataset folder or URI written by pipelines/generate.py."""
+        cols = ["episode_id", "map_id", "num_robots", "leader", "num_steps", "goal", "positions"]
+        episodes = shards.read_table(location, "episodes", columns=cols, successful_only=successful_only)
+        if episodes.num_rows == 0:
+            raise ValueError(f"{location}: no {'successful ' if successful_only else ''}episodes to train on")
+        return cls.from_arrow(episodes, shards.read_table(location, "maps"), canvas)
+
+    def positions(self, i: int) -> np.ndarray:
+        T, N = int(self.num_steps[i]), int(self.num_robots[i])
+        return self.flat[self.offsets[i]:self.offsets[i + 1]].reshape(T + 1, N, 2)
+
+    def sdf(self, m: int) -> np.ndarray:
+        if m not in self._sdf:
+            self._sdf[m] = signed_distance_field(self.occupancy[m])
+        return self._sdf[m]
+
+    def episode_weights(self, team_size_weights: dict[int, float]) -> np.ndarray | None:
+        """Sampling probabilities that give team size n the share team_size_weights[n] (None = uniform)."""
+        if not team_size_weights:
+            return None
+        w = np.zeros(len(self))
+        for n, share in team_size_weights.items():
+            sel = self.num_robots == int(n)
+            if sel.any():
+                w[sel] = float(share) / sel.sum()
+        if w.sum() <= 0:
+            raise ValueError(f"samples.team_size_weights {team_size_weights} selects no episode; "
+                             f"team sizes present: {sorted(set(self.num_robots.tolist()))}")
+        return w / w.sum()
+
+
+def _future_points(path: np.ndarray, spacing: float, count: int) -> np.ndarray:
+    """Points every `spacing` metres of arc length along path (L, 2); the end point once it runs out."""
+    seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    targets = spacing * np.arange(1, count + 1)
+    return np.stack([np.interp(targets, s, path[:, 0]), np.interp(targets, s, path[:, 1])], axis=-1)
+
+
+def heatmap(points: np.ndarray, size: int, sigma: float) -> np.ndarray:
+    """(S, S) max over points (n, 2) of Gaussian kernels evaluated at cell centres."""
+    c = np.arange(size, dtype=np.float32) + 0.5
+    gx = np.exp(-((c[None, :] - points[:, :1]) ** 2) / (2 * sigma ** 2))  # (n, S)
+    gy = np.exp(-((c[None, :] - points[:, 1:]) ** 2) / (2 * sigma ** 2))  # (n, S)
+    return (gy[:, :, None] * gx[:, None, :]).max(axis=0)
+
+
+def local_patches(occupancy: np.ndarray, points: np.ndarray, patch: int, scale: int) -> tuple[np.ndarray, np.ndarray]:
+    """Occupancy patch x patch around the cell of each point, and the (patch*scale)^2 patch max-pooled by scale.
+    Cells outside the map count as obstacle."""
+    half_large = patch * scale // 2
+    padded = np.pad(occupancy, half_large, constant_values=1)
+    r = np.floor(points[:, 1]).astype(np.int64) + half_large
+    c = np.floor(points[:, 0]).astype(np.int64) + half_large
+    small = np.arange(patch) - patch // 2
+    large = np.arange(patch * scale) - half_large
+    occ_s = padded[(r[:, None] + small)[:, :, None], (c[:, None] + small)[:, None, :]]
+    occ_l = padded[(r[:, None] + large)[:, :, None], (c[:, None] + large)[:, None, :]]
+    n = len(points)
+    occ_l = occ_l.reshape(n, patch, scale, patch, scale).max(axis=(2, 4))
+    return occ_s.astype(np.float32), occ_l.astype(np.float32)
+
+
+def encode_chunk(points: np.ndarray, cfg: SampleConfig) -> np.ndarray:
+    """(H+1, N, 2) positions at t, t+interval, ... -> (N, H, 2) chunk in cfg.representation."""
+    if cfg.representation == "relative":
+        chunk = np.diff(points, axis=0) / cfg.step_scale
+    else:
+        chunk = points[1:] / cfg.pos_scale - 1.0
+    return chunk.transpose(1, 0, 2).astype(np.float32)
+
+
+def decode_chunk(chunk: np.ndarray, start: np.ndarray, cfg: SampleConfig) -> np.ndarray:
+    """(..., H, 2) chunk and (..., 2) start -> (..., H, 2) positions in metres (numpy; the model has a torch twin)."""
+    if cfg.representation == "relative":
+        return start[..., None, :] + np.cumsum(chunk, axis=-2) * cfg.step_scale
+    return (chunk + 1.0) * cfg.pos_scale
+
+
+def make_sample(bank: EpisodeBank, i: int, rng: np.random.Generator, cfg: SampleConfig) -> dict[str, np.ndarray]:
+    """One training sample from episode i; all randomness comes from rng."""
+    P = bank.positions(i)
+    T, N, leader = P.shape[0] - 1, P.shape[1], int(bank.leader[i])
+    R, H, K, S = cfg.max_robots, cfg.horizon, cfg.num_waypoints, cfg.canvas
+    if N > R:
+        raise ValueError(f"episode {bank.episode_ids[i]} has {N} robots, more than samples.max_robots={R}; "
+                         f"raise it with --set samples.max_robots={N} (the model's token count follows)")
+    if T < 1:
+        raise ValueError(f"episode {bank.episode_ids[i]} has no steps; drop it from the dataset")
+    # Goal along the leader's future, then the time t inside the sub-episode [0, t_g].
+    final = rng.random() < cfg.final_goal_prob
+    t_g = T if final else int(rng.integers(1, T + 1))
+    t = int(rng.integers(0, t_g))
+    goal = bank.goal[i].astype(np.float32) if final else P[t_g, leader].astype(np.float32)
+    idx = np.minimum(t + cfg.interval * np.arange(H + 1), t_g)
+    points = P[idx]  # (H+1, N, 2)
+    future = P[t:t_g + 1]  # (L, N, 2)
+    wps = np.stack([_future_points(future[:, j], cfg.waypoint_spacing, K) for j in range(N)])  # (N, K, 2)
+    length = np.linalg.norm(np.diff(future[:, leader], axis=0), axis=1).sum()
+    wps[leader, cfg.waypoint_spacing * np.arange(1, K + 1) > length] = goal  # "filled with the goal"
+
+    m = int(bank.map_index[i])
+    occ, sdf = bank.occupancy[m], bank.sdf(m)
+    if cfg.augment:
+        e = int(rng.integers(0, 8))
+        occ, sdf = transform_grid(occ, e), transform_grid(sdf, e)
+        points, wps = transform_points(points, e, S), transform_points(wps, e, S)
+        goal = transform_points(goal, e, S)
+    order = rng.permutation(N) if cfg.shuffle_robots else np.arange(N)
+    points, wps = points[:, order], wps[order]
+    leader = int(np.flatnonzero(order == leader)[0])
+
+    start = points[0]  # (N, 2)
+    occ_s, occ_l = local_patches(occ, start, cfg.patch, cfg.large_scale)
+    traj_mask = np.zeros(N, dtype=np.float32)
+    if N >= 2 and rng.random() < cfg.condition_prob:
+        traj_mask[rng.choice(N, size=int(rng.integers(1, N)), replace=False)] = 1.0
+
+    out = {
+        "chunk": np.zeros((R, H, 2), np.float32), "start": np.zeros((R, 2), np.float32),
+        "rel_goal": np.zeros((R, 2), np.float32), "goal": goal.astype(np.float32),
+        "goal_mask": np.zeros(R, np.float32), "traj_mask": np.zeros(R, np.float32),
+        "robot_mask": np.zeros(R, bool), "waypoints": np.zeros((R, K, 2), np.float32),
+        "occ_small": np.zeros((R, cfg.patch, cfg.patch), np.float32),
+        "occ_large": np.zeros((R, cfg.patch, cfg.patch), np.float32),
+        "num_robots": np.int64(N),
+    }
+    out["chunk"][:N] = encode_chunk(points, cfg)
+    out["start"][:N] = start
+    out["rel_goal"][leader] = (goal - start[leader]) / cfg.pos_scale
+    out["goal_mask"][leader] = 1.0
+    out["traj_mask"][:N] = traj_mask
+    out["robot_mask"][:N] = True
+    out["waypoints"][:N] = (wps - start[:, None, :]) / cfg.waypoint_scale
+    out["occ_small"][:N], out["occ_large"][:N] = occ_s, occ_l
+    out["map"] = np.stack([occ.astype(np.float32), heatmap(start, S, cfg.heatmap_sigma),
+                           heatmap(goal[None], S, cfg.heatmap_sigma)])
+    out["sdf"] = np.ascontiguousarray(sdf, dtype=np.float32)
+    return out
