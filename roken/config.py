@@ -5,8 +5,12 @@ from dataclasses import dataclass, field
 
 from .configtools import ConfigError, load, to_dict  # noqa: F401  (re-exported)
 from .data.generation import DatasetConfig
+from .data.samples import SampleConfig
 from .eval.harness import EvalConfig
 from .expert.laplacian import ExpertConfig
+from .model.diffusion import DiffusionConfig
+from .model.dit import ModelConfig
+from .model.losses import LossConfig
 from .world.maps import MapConfig
 from .world.tasks import TaskConfig
 
@@ -18,6 +22,10 @@ class Config:
     expert: ExpertConfig = field(default_factory=ExpertConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
+    samples: SampleConfig = field(default_factory=SampleConfig)  # training samples cut from episodes
+    model: ModelConfig = field(default_factory=ModelConfig)  # defaults = the `paper` preset
+    diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
 
 
 def load_config(path=None, overrides: list[str] | None = None) -> Config:

@@ -149,3 +149,33 @@ print(json.dumps({{"names": list(schema.names), "types": [str(x) for x in schema
     assert got["names"] == got["pa_names"] and got["types"] == got["pa_types"] == got["batch_types"]
     assert got["rows"] == got["pa_rows"] > 0
     assert "list<element: float>" in got["types"] and not any("tensor" in t.lower() for t in got["types"])
+
+
+def test_ray_data_batches_of_training_samples(head, expert_dataset):
+    """Ray Data's map_batches turns episode rows into training samples equal to the in-process ones."""
+    code = f"""
+import json
+import numpy as np
+from roken import ray_pool
+from roken.data import shards
+from roken.data.loader import EpisodeBatchToSamples
+from roken.data.samples import SampleConfig
+ray_pool.connect(address={head['GCS']!r})
+fn = EpisodeBatchToSamples({expert_dataset!r}, SampleConfig(), seed=5)
+ds = ray_pool.read_ray_dataset({expert_dataset!r}).map_batches(fn, batch_size=5, batch_format="numpy")
+rows = {{}}
+for b in ds.iter_torch_batches(batch_size=7):
+    for i in range(len(b["chunk"])):
+        rows[b["start"][i].numpy().tobytes()] = b["chunk"][i].numpy()
+t = shards.read_table({expert_dataset!r}, "episodes")
+ref = fn({{c: t.column(c).to_numpy(zero_copy_only=False) for c in t.column_names}})
+same = all(np.array_equal(rows[ref["start"][i].tobytes()], ref["chunk"][i])
+           for i in range(len(ref["chunk"])))
+print(json.dumps({{"n": len(rows), "ref": len(ref["chunk"]), "same": same,
+                   "keys": sorted(b.keys()), "dtype": str(b["robot_mask"].dtype)}}))
+"""
+    r = subprocess.run([sys.executable, "-c", code], env=head, capture_output=True, text=True, timeout=180, cwd=ROOT)
+    assert r.returncode == 0, r.stderr[-3000:]
+    got = json.loads(r.stdout.strip().splitlines()[-1])
+    assert got["n"] == got["ref"] > 0 and got["same"], got
+    assert "chunk" in got["keys"] and "map" in got["keys"] and got["dtype"] == "torch.bool"

@@ -199,7 +199,7 @@ def heatmap(points: np.ndarray, size: int, sigma: float) -> np.ndarray:
     c = np.arange(size, dtype=np.float32) + 0.5
     gx = np.exp(-((c[None, :] - points[:, :1]) ** 2) / (2 * sigma ** 2))  # (n, S)
     gy = np.exp(-((c[None, :] - points[:, 1:]) ** 2) / (2 * sigma ** 2))  # (n, S)
-    return (gy[:, :, None] * gx[:, None, :]).max(axis=0)
+    return (gy[:, :, None] * gx[:, None, :]).max(axis=0).astype(np.float32)
 
 
 def local_patches(occupancy: np.ndarray, points: np.ndarray, patch: int, scale: int) -> tuple[np.ndarray, np.ndarray]:
