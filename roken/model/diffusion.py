@@ -77,7 +77,9 @@ class NoiseSchedule:
 
 
 def gaussian_logprob(x, mean, sigma, mask) -> torch.Tensor:
-    """log N(x; mean, sigma^2 I) over the elements where mask (B, R) is true -> (B,)."""
+    """log N(x; mean, sigma^2 I) over the elements where mask (B, R) is true -> (B,), in float32 even when the
+    model ran in bf16 (GRPO's ratios are differences of sums over hundreds of elements)."""
+    x, mean, sigma = x.float(), mean.float(), sigma.float()
     lp = -0.5 * ((x - mean) / sigma) ** 2 - torch.log(sigma) - 0.5 * math.log(2 * math.pi)
     return (lp * mask[:, :, None, None]).sum(dim=(1, 2, 3))
 
