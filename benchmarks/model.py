@@ -19,11 +19,10 @@ from contextlib import nullcontext
 import numpy as np
 import torch
 
-from roken.data.samples import heatmap
+from roken.data.samples import SampleConfig, heatmap
 from roken.model.diffusion import DiffusionConfig, NoiseSchedule, ddim_sample, ddpm_sample, make_prompt
 from roken.model.dit import PRESETS, RokenDiT, preset
 from roken.model.losses import LossConfig, pretraining_loss
-from roken.data.samples import SampleConfig
 from roken.world.maps import MapConfig, generate_map
 
 

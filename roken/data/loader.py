@@ -14,12 +14,10 @@ from __future__ import annotations
 import zlib
 
 import numpy as np
-import pyarrow as pa
-import pyarrow.compute as pc
 import torch
 
 from . import shards
-from .samples import SAMPLE_KEYS, EpisodeBank, SampleConfig, check, make_sample
+from .samples import SAMPLE_KEYS, EpisodeBank, MapStore, SampleConfig, check, make_sample, sample_shapes
 
 
 class ChunkDataset(torch.utils.data.Dataset):
@@ -55,12 +53,7 @@ def stack(samples: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
 
 def empty_batch(cfg: SampleConfig) -> dict[str, np.ndarray]:
     """A batch of no samples with the right per-sample shapes (a Ray batch whose episodes all failed)."""
-    R, H, K, P, S = cfg.max_robots, cfg.horizon, cfg.num_waypoints, cfg.patch, cfg.canvas
-    shapes = {"chunk": (R, H, 2), "start": (R, 2), "rel_goal": (R, 2), "goal": (2,), "goal_mask": (R,),
-              "traj_mask": (R,), "robot_mask": (R,), "waypoints": (R, K, 2), "occ_small": (R, P, P),
-              "occ_large": (R, P, P), "map": (3, S, S), "sdf": (S, S), "num_robots": ()}
-    dtypes = {"robot_mask": bool, "num_robots": np.int64}
-    return {k: np.zeros((0, *shapes[k]), dtypes.get(k, np.float32)) for k in SAMPLE_KEYS}
+    return {k: np.zeros((0, *shape), dtype) for k, (shape, dtype) in sample_shapes(cfg).items()}
 
 
 def collate(samples: list[dict[str, np.ndarray]]) -> dict[str, torch.Tensor]:
@@ -76,7 +69,8 @@ def to_device(batch: dict, device: torch.device | str) -> dict[str, torch.Tensor
 class EpisodeBatchToSamples:
     """Ray Data `map_batches` callable: a numpy batch of episode rows -> a batch of training samples.
 
-    The maps table of `location` is read once per worker (maps are small next to episodes). Each episode row
+    The maps of `location` are read and decoded once per worker, and their SDFs kept across batches (maps are
+    small next to episodes). Each episode row
     gives `samples_per_episode` samples; rows whose `success` is false are dropped unless successful_only is
     off. Usable without Ray on any dict of episode columns."""
 
@@ -86,28 +80,17 @@ class EpisodeBatchToSamples:
         self.successful_only = successful_only
         self.location, self.cfg, self.seed, self.epoch = location, cfg, seed, epoch
         self.samples_per_episode = samples_per_episode
-        self._maps: pa.Table | None = None
+        self._maps: MapStore | None = None
 
     def __call__(self, batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         if self._maps is None:
-            self._maps = shards.read_table(self.location, "maps")
+            self._maps = MapStore(shards.read_table(self.location, "maps"), self.cfg.canvas)
         if self.successful_only and "success" in batch:
             keep = np.asarray(batch["success"], dtype=bool)
             batch = {k: np.asarray(v)[keep] for k, v in batch.items()}
         if len(batch["episode_id"]) == 0:
             return empty_batch(self.cfg)
-        positions = pa.array([np.asarray(p, dtype=np.float32) for p in batch["positions"]], pa.list_(pa.float32()))
-        goals = np.stack([np.asarray(g, dtype=np.float32) for g in batch["goal"]])
-        episodes = pa.table({
-            "episode_id": pa.array(list(batch["episode_id"]), pa.string()),
-            "map_id": pa.array(list(batch["map_id"]), pa.string()),
-            "num_robots": np.asarray(batch["num_robots"], np.int32), "leader": np.asarray(batch["leader"], np.int32),
-            "num_steps": np.asarray(batch["num_steps"], np.int32),
-            "goal": pa.FixedSizeListArray.from_arrays(pa.array(goals.reshape(-1)), 2), "positions": positions,
-        })
-        needed = pa.array(sorted(set(episodes.column("map_id").to_pylist())))
-        maps = self._maps.filter(pc.is_in(self._maps.column("map_id"), value_set=needed))
-        bank = EpisodeBank.from_arrow(episodes, maps, self.cfg.canvas)
+        bank = EpisodeBank.from_columns(batch, self._maps)
         out = []
         for i in range(len(bank)):
             key = zlib.crc32(bank.episode_ids[i].encode())

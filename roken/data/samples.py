@@ -105,21 +105,47 @@ def transform_points(p: np.ndarray, element: int, size: int) -> np.ndarray:
 
 # ---------------------------------------------------------------------------------------------------------
 
-class EpisodeBank:
-    """Episodes and their maps as flat numpy arrays (zero-copy from Arrow), indexable by episode.
+class MapStore:
+    """The maps of a dataset decoded once onto the canvas: (M, S, S) uint8 occupancy, a map-id index and the
+    SDF of each map computed on first use and kept (the Ray batch function holds one for all its batches)."""
 
-    positions of episode i: flat[offsets[i]:offsets[i+1]].reshape(T+1, N, 2). Maps are stacked
-    (M, S, S) uint8; the SDF of a map is computed on first use and cached.
+    def __init__(self, maps: pa.Table, canvas: int = 140):
+        self.map_ids = maps.column("map_id").to_pylist()
+        self.lookup = {m: k for k, m in enumerate(self.map_ids)}
+        self.occupancy = np.ones((len(self.map_ids), canvas, canvas), dtype=np.uint8)
+        for k, (h, w, b) in enumerate(zip(maps.column("height").to_pylist(), maps.column("width").to_pylist(),
+                                          maps.column("occupancy").to_pylist())):
+            if h > canvas or w > canvas:
+                raise ValueError(f"map {self.map_ids[k]} is {h} x {w}, larger than the {canvas} x {canvas} canvas; "
+                                 f"set samples.canvas to the canvas the dataset was generated on")
+            self.occupancy[k, :h, :w] = np.frombuffer(b, dtype=np.uint8).reshape(h, w)
+        self._sdf: dict[int, np.ndarray] = {}
+
+    def index(self, map_ids: list[str]) -> np.ndarray:
+        missing = sorted(set(map_ids) - self.lookup.keys())
+        if missing:
+            raise ValueError(f"episodes refer to maps not in the maps table: {missing[:5]}; "
+                             f"read the maps/ shards of the same dataset folder")
+        return np.asarray([self.lookup[m] for m in map_ids], dtype=np.int64)
+
+    def sdf(self, m: int) -> np.ndarray:
+        if m not in self._sdf:
+            self._sdf[m] = signed_distance_field(self.occupancy[m])
+        return self._sdf[m]
+
+
+class EpisodeBank:
+    """Episodes as flat numpy arrays (zero-copy from Arrow) over a MapStore, indexable by episode.
+
+    positions of episode i: flat[offsets[i]:offsets[i+1]].reshape(T+1, N, 2); its map: maps.occupancy[map_index[i]].
     """
 
     def __init__(self, flat: np.ndarray, offsets: np.ndarray, num_robots: np.ndarray, num_steps: np.ndarray,
-                 leader: np.ndarray, goal: np.ndarray, map_index: np.ndarray, occupancy: np.ndarray,
-                 episode_ids: list[str], map_ids: list[str]):
+                 leader: np.ndarray, goal: np.ndarray, map_ids: list[str], episode_ids: list[str], maps: MapStore):
         self.flat, self.offsets = flat, offsets
-        self.num_robots, self.num_steps, self.leader = num_robots, num_steps, leader
-        self.goal, self.map_index, self.occupancy = goal, map_index, occupancy
-        self.episode_ids, self.map_ids = episode_ids, map_ids
-        self._sdf: dict[int, np.ndarray] = {}
+        self.num_robots, self.num_steps, self.leader, self.goal = num_robots, num_steps, leader, goal
+        self.maps, self.map_index, self.episode_ids = maps, maps.index(map_ids), episode_ids
+        self.occupancy, self.map_ids, self.sdf = maps.occupancy, maps.map_ids, maps.sdf
         expected = (num_steps.astype(np.int64) + 1) * num_robots * 2
         bad = np.flatnonzero(np.diff(offsets) != expected)
         if len(bad):
@@ -130,28 +156,24 @@ class EpisodeBank:
         return len(self.num_robots)
 
     @classmethod
-    def from_arrow(cls, episodes: pa.Table, maps: pa.Table, canvas: int = 140) -> "EpisodeBank":
-        map_ids = maps.column("map_id").to_pylist()
-        lookup = {m: k for k, m in enumerate(map_ids)}
-        occ = np.ones((len(map_ids), canvas, canvas), dtype=np.uint8)
-        for k, (h, w, b) in enumerate(zip(maps.column("height").to_pylist(), maps.column("width").to_pylist(),
-                                          maps.column("occupancy").to_pylist())):
-            if h > canvas or w > canvas:
-                raise ValueError(f"map {map_ids[k]} is {h} x {w}, larger than the {canvas} x {canvas} canvas; "
-                                 f"set samples.canvas to the canvas the dataset was generated on")
-            occ[k, :h, :w] = np.frombuffer(b, dtype=np.uint8).reshape(h, w)
-        ep_maps = episodes.column("map_id").to_pylist()
-        missing = sorted(set(ep_maps) - lookup.keys())
-        if missing:
-            raise ValueError(f"episodes refer to maps not in the maps table: {missing[:5]}; "
-                             f"read the maps/ shards of the same dataset folder")
+    def from_arrow(cls, episodes: pa.Table, maps: pa.Table | MapStore, canvas: int = 140) -> "EpisodeBank":
+        maps = maps if isinstance(maps, MapStore) else MapStore(maps, canvas)
         pos = episodes.column("positions").combine_chunks()
         return cls(pos.values.to_numpy(zero_copy_only=False), pos.offsets.to_numpy(),
                    episodes.column("num_robots").to_numpy(), episodes.column("num_steps").to_numpy(),
                    episodes.column("leader").to_numpy(),
                    np.asarray(episodes.column("goal").to_pylist(), dtype=np.float32).reshape(-1, 2),
-                   np.asarray([lookup[m] for m in ep_maps], dtype=np.int64), occ,
-                   episodes.column("episode_id").to_pylist(), map_ids)
+                   episodes.column("map_id").to_pylist(), episodes.column("episode_id").to_pylist(), maps)
+
+    @classmethod
+    def from_columns(cls, batch: dict[str, np.ndarray], maps: MapStore) -> "EpisodeBank":
+        """A numpy batch of episode rows (as Ray Data hands them: `positions` an array of arrays)."""
+        positions = [np.asarray(p, dtype=np.float32).reshape(-1) for p in batch["positions"]]
+        offsets = np.concatenate([[0], np.cumsum([len(p) for p in positions])]).astype(np.int64)
+        return cls(np.concatenate(positions), offsets, np.asarray(batch["num_robots"]),
+                   np.asarray(batch["num_steps"]), np.asarray(batch["leader"]),
+                   np.stack([np.asarray(g, dtype=np.float32) for g in batch["goal"]]),
+                   [str(m) for m in batch["map_id"]], [str(e) for e in batch["episode_id"]], maps)
 
     @classmethod
     def from_folder(cls, location: str, canvas: int = 140, successful_only: bool = True) -> "EpisodeBank":
@@ -165,11 +187,6 @@ class EpisodeBank:
     def positions(self, i: int) -> np.ndarray:
         T, N = int(self.num_steps[i]), int(self.num_robots[i])
         return self.flat[self.offsets[i]:self.offsets[i + 1]].reshape(T + 1, N, 2)
-
-    def sdf(self, m: int) -> np.ndarray:
-        if m not in self._sdf:
-            self._sdf[m] = signed_distance_field(self.occupancy[m])
-        return self._sdf[m]
 
     def episode_weights(self, team_size_weights: dict[int, float]) -> np.ndarray | None:
         """Sampling probabilities that give team size n the share team_size_weights[n] (None = uniform)."""
@@ -234,6 +251,16 @@ def decode_chunk(chunk: np.ndarray, start: np.ndarray, cfg: SampleConfig) -> np.
     return (chunk + 1.0) * cfg.pos_scale
 
 
+def sample_shapes(cfg: SampleConfig) -> dict[str, tuple[tuple[int, ...], type]]:
+    """Shape and dtype of every array of one sample (SAMPLE_KEYS)."""
+    R, H, K, P, S = cfg.max_robots, cfg.horizon, cfg.num_waypoints, cfg.patch, cfg.canvas
+    f = np.float32
+    return {"chunk": ((R, H, 2), f), "start": ((R, 2), f), "rel_goal": ((R, 2), f), "goal": ((2,), f),
+            "goal_mask": ((R,), f), "traj_mask": ((R,), f), "robot_mask": ((R,), bool), "waypoints": ((R, K, 2), f),
+            "occ_small": ((R, P, P), f), "occ_large": ((R, P, P), f), "map": ((3, S, S), f), "sdf": ((S, S), f),
+            "num_robots": ((), np.int64)}
+
+
 def make_sample(bank: EpisodeBank, i: int, rng: np.random.Generator, cfg: SampleConfig) -> dict[str, np.ndarray]:
     """One training sample from episode i; all randomness comes from rng."""
     P = bank.positions(i)
@@ -273,15 +300,8 @@ def make_sample(bank: EpisodeBank, i: int, rng: np.random.Generator, cfg: Sample
     if N >= 2 and rng.random() < cfg.condition_prob:
         traj_mask[rng.choice(N, size=int(rng.integers(1, N)), replace=False)] = 1.0
 
-    out = {
-        "chunk": np.zeros((R, H, 2), np.float32), "start": np.zeros((R, 2), np.float32),
-        "rel_goal": np.zeros((R, 2), np.float32), "goal": goal.astype(np.float32),
-        "goal_mask": np.zeros(R, np.float32), "traj_mask": np.zeros(R, np.float32),
-        "robot_mask": np.zeros(R, bool), "waypoints": np.zeros((R, K, 2), np.float32),
-        "occ_small": np.zeros((R, cfg.patch, cfg.patch), np.float32),
-        "occ_large": np.zeros((R, cfg.patch, cfg.patch), np.float32),
-        "num_robots": np.int64(N),
-    }
+    out = {k: np.zeros(shape, dtype) for k, (shape, dtype) in sample_shapes(cfg).items()}
+    out["goal"], out["num_robots"] = goal.astype(np.float32), np.int64(N)
     out["chunk"][:N] = encode_chunk(points, cfg)
     out["start"][:N] = start
     out["rel_goal"][leader] = (goal - start[leader]) / cfg.pos_scale
@@ -290,7 +310,7 @@ def make_sample(bank: EpisodeBank, i: int, rng: np.random.Generator, cfg: Sample
     out["robot_mask"][:N] = True
     out["waypoints"][:N] = (wps - start[:, None, :]) / cfg.waypoint_scale
     out["occ_small"][:N], out["occ_large"][:N] = occ_s, occ_l
-    out["map"] = np.stack([occ.astype(np.float32), heatmap(start, S, cfg.heatmap_sigma),
-                           heatmap(goal[None], S, cfg.heatmap_sigma)])
-    out["sdf"] = np.ascontiguousarray(sdf, dtype=np.float32)
+    out["map"][0], out["map"][1], out["map"][2] = occ, heatmap(start, S, cfg.heatmap_sigma), \
+        heatmap(goal[None], S, cfg.heatmap_sigma)
+    out["sdf"][:] = sdf
     return out
