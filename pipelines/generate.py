@@ -16,7 +16,7 @@ import sys
 from common import add_common_args, explain_relative_out, make_runner, named_overrides
 
 from roken.config import ConfigError, load_config
-from roken.data.build import build_dataset
+from roken.data.build import build_dataset, parse_shard
 from roken.data.store import StoreError
 from roken.world.loaders import MapError
 
@@ -27,6 +27,8 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--num-maps", type=int, help="use at most this many maps")
     ap.add_argument("--episodes-per-map", type=int, help="episodes per map (default 10)")
     ap.add_argument("--seed", type=int, help="task seed")
+    ap.add_argument("--shard", metavar="K/N", help="run only units u with u %% N == K (N processes, no Ray, one "
+                                                   "dataset: a Slurm array, a GPU box)")
     ap.add_argument("--out", required=True, help="output folder or URI (s3://..., gs://..., file://...)")
     add_common_args(ap)
     return ap
@@ -40,12 +42,15 @@ def main(argv=None) -> int:
     args = parser().parse_args(argv)
     try:
         cfg = load_config(args.config, overrides(args))
+        shard = parse_shard(args.shard)
         explain_relative_out(args.out)
         runner = make_runner(args)
-        manifest = build_dataset(cfg, args.out, runner)
+        manifest = build_dataset(cfg, args.out, runner, shard)
     except (ConfigError, StoreError, MapError, ValueError, OSError, ConnectionError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    if shard is not None:
+        return 0 if not manifest["failures"] else 1
     return 0 if manifest["status"] == "complete" else 1
 
 

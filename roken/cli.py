@@ -1,8 +1,10 @@
-"""`roken` command line: `roken plot RUN_DIR --episode ID --out FILE.png`, `roken validate RUN_DIR`."""
+"""`roken` command line: `roken plot RUN_DIR --episode ID --out FILE.png`, `roken validate RUN_DIR`,
+`roken export RUN_OR_CHECKPOINT OUT`."""
 from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from .config import ConfigError
 
@@ -37,6 +39,14 @@ def cmd_validate(args) -> int:
     return 0
 
 
+def cmd_export(args) -> int:
+    from .train.export import export
+
+    notes = Path(args.notes).read_text() if args.notes else ""
+    print(export(args.source, args.out, args.which, notes))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="roken", description=__doc__)
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -51,6 +61,12 @@ def main(argv: list[str] | None = None) -> int:
     v = sub.add_parser("validate", help="check a folder against the episode-store contract")
     v.add_argument("run")
     v.set_defaults(fn=cmd_validate)
+    x = sub.add_parser("export", help="ship a checkpoint: fp16 EMA weights, config.json and a model card")
+    x.add_argument("source", help="checkpoint directory or run folder")
+    x.add_argument("out", help="folder to write (replaced if it holds a checkpoint)")
+    x.add_argument("--which", choices=("latest", "best"), default="latest", help="checkpoint of a run folder")
+    x.add_argument("--notes", help="a Markdown file appended to the model card")
+    x.set_defaults(fn=cmd_export)
     args = ap.parse_args(argv)
     try:
         return args.fn(args)

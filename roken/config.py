@@ -11,6 +11,7 @@ from .expert.laplacian import ExpertConfig
 from .model.diffusion import DiffusionConfig
 from .model.dit import ModelConfig
 from .model.losses import LossConfig
+from .train.loop import TrainConfig
 from .world.maps import MapConfig
 from .world.tasks import TaskConfig
 
@@ -26,6 +27,7 @@ class Config:
     model: ModelConfig = field(default_factory=ModelConfig)  # defaults = the `paper` preset
     diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
     loss: LossConfig = field(default_factory=LossConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)  # pretraining (roken/train/loop.py)
 
 
 def load_config(path=None, overrides: list[str] | None = None) -> Config:

@@ -30,12 +30,13 @@ RETRYABLE = (RayActorError, WorkerCrashedError, OutOfMemoryError, ObjectLostErro
 
 
 def connect(address: str | None = None, local: bool = False, num_cpus: int | None = None,
-            code_root: str | None = None) -> dict:
+            code_root: str | None = None, dashboard: bool = False) -> dict:
     """Start or join a Ray cluster with token authentication on; returns the cluster's resources.
 
     local=True starts a private cluster on this machine with `num_cpus` (default: every core) - the laptop
     mode that replaces the `local_mode=True` Ray removed in 2.55. Otherwise join `address`, $RAY_ADDRESS
     (set for `ray job submit` drivers), or a cluster started on this machine with `ray start`.
+    `dashboard` starts the local cluster's dashboard on 127.0.0.1 (Ray Train uses its state API).
     `code_root` is put on the workers' PYTHONPATH so they import this checkout without installing it
     (a submitted job gets the same from its uploaded working directory instead).
     """
@@ -49,8 +50,11 @@ def connect(address: str | None = None, local: bool = False, num_cpus: int | Non
         runtime_env = {"env_vars": {"PYTHONPATH": path}}
     kwargs = dict(runtime_env=runtime_env, logging_level="WARNING", log_to_driver=True)
     if local:
-        ray.init(address="local", num_cpus=num_cpus or os.cpu_count(), include_dashboard=False,
-                 **kwargs)
+        # Ray Train needs the dashboard's state API (without it, its placement-group cleaner floods the log);
+        # bound to 127.0.0.1 on a port Ray picks.
+        extra = dict(include_dashboard=True, dashboard_host="127.0.0.1", dashboard_port=None) if dashboard \
+            else dict(include_dashboard=False)
+        ray.init(address="local", num_cpus=num_cpus or os.cpu_count(), **extra, **kwargs)
     else:
         target = address or os.environ.get("RAY_ADDRESS") or "auto"
         try:

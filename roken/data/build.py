@@ -88,8 +88,25 @@ def summary_table(by_n: dict, total_s: float, episodes: int, runner_desc: str, u
     return "\n".join(lines)
 
 
-def build_dataset(cfg, out: str, runner) -> dict:
-    """Generate (or finish) the dataset described by `cfg` in folder or URI `out`; returns the manifest."""
+def parse_shard(text: str | None) -> tuple[int, int] | None:
+    """'K/N' -> (K, N) with 0 <= K < N."""
+    if text is None:
+        return None
+    try:
+        k, n = (int(v) for v in text.split("/"))
+    except ValueError:
+        raise ValueError(f"--shard {text!r}: expected K/N, e.g. 0/4 for the first of 4 processes") from None
+    if n < 1 or not 0 <= k < n:
+        raise ValueError(f"--shard {text}: needs N >= 1 and 0 <= K < N")
+    return k, n
+
+
+def build_dataset(cfg, out: str, runner, shard: tuple[int, int] | None = None) -> dict:
+    """Generate (or finish) the dataset described by `cfg` in folder or URI `out`; returns the manifest.
+
+    shard=(K, N) runs only the units u with u % N == K (N processes without Ray make one dataset together: a
+    Slurm array, a GPU box); the manifest lists every unit finished so far, so the last process to finish
+    (or a plain run afterwards, which reuses every shard) writes it complete."""
     check(cfg.dataset)
     out = str(out)
     fp = fingerprint(cfg)
@@ -100,11 +117,11 @@ def build_dataset(cfg, out: str, runner) -> dict:
     plans = plan_units(cfg.dataset, cfg.map)
     summaries: dict[str, dict] = {}
     todo = []
-    for p in plans:
+    for u, p in enumerate(plans):
         s = finished_summary(out, p["key"], fp)
         if s is not None:
             summaries[p["key"]] = s
-        else:
+        elif shard is None or u % shard[1] == shard[0]:
             todo.append(Unit(p["key"], p, size=len(p["maps"]) * cfg.dataset.episodes_per_map))
     manifest = {
         "kind": "roken-dataset", "schema_version": SCHEMA_VERSION, "status": "running", "fingerprint": fp,
@@ -112,6 +129,8 @@ def build_dataset(cfg, out: str, runner) -> dict:
         "command": sys.argv,
     }
     atomic_write_json(manifest, fs.join(out, "manifest.json"))
+    if shard is not None:
+        print(f"[generate] shard {shard[0]}/{shard[1]}: units u with u % {shard[1]} == {shard[0]}", file=sys.stderr)
     print(f"[generate] {len(plans)} units of {cfg.dataset.maps_per_unit} maps x {cfg.dataset.episodes_per_map} "
           f"episodes -> {out}: {len(summaries)} finished earlier, {len(todo)} to run on "
           f"{runner.describe() if runner.workers == 0 else f'{runner.workers} Ray workers'}", file=sys.stderr)
@@ -139,9 +158,11 @@ def build_dataset(cfg, out: str, runner) -> dict:
 def _finish(cfg, out, manifest, plans, summaries, failures, runner, total_s, worker_s, episodes_run, n_run):
     by_n: dict[str, list[int]] = {}
     shards, bad_maps, skipped = [], [], []
+    missing = 0
     for p in plans:
         s = summaries.get(p["key"])
         if s is None:
+            missing += 1
             continue
         maps_path, ep_path = shard_paths(out, p["key"])
         shards.append({"unit": p["key"], "episodes": f"episodes/{p['key']}.parquet",
@@ -157,7 +178,7 @@ def _finish(cfg, out, manifest, plans, summaries, failures, runner, total_s, wor
              "episodes_run": episodes_run}
     episodes = sum(s["rows"] for s in shards)
     manifest |= {
-        "status": "complete" if not failures else "incomplete",
+        "status": "complete" if not failures and not missing else "incomplete", "units_missing": missing,
         "shards": shards, "episodes": episodes, "maps": sum(s["map_rows"] for s in shards),
         "by_team_size": {n: {"attempted": a, "success": s, "kept": k, "success_rate": s / max(a, 1)}
                          for n, (a, s, k) in sorted(by_n.items(), key=lambda kv: int(kv[0]))},
@@ -170,6 +191,9 @@ def _finish(cfg, out, manifest, plans, summaries, failures, runner, total_s, wor
     for b in bad_maps:
         print(f"[generate] skipped map {b['file']}: {b['reason']}", file=sys.stderr)
     print(summary_table(by_n, total_s, episodes, runner.describe(), units, retries))
+    if missing and not failures:
+        print(f"[generate] {missing} unit(s) of other shards not written yet; when every --shard process has "
+              f"finished, the dataset is complete (a plain run of the same command checks it)", file=sys.stderr)
     if failures:
         print(f"[generate] {len(failures)} unit(s) failed (listed in manifest.json); re-run the same command "
               f"to retry them - finished units are kept", file=sys.stderr)

@@ -19,11 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..expert.laplacian import LaplacianExpert
+from ..configtools import from_dict
+from ..expert.laplacian import ExpertConfig, LaplacianExpert
 from ..world.grid import GridMap
 from ..world.loaders import MapError, find_map_files, load_map_file
-from ..world.maps import SPLITS, generate_map, split_size
-from ..world.tasks import TaskError, sample_task
+from ..world.maps import SPLITS, MapConfig, generate_map, split_size
+from ..world.tasks import TaskConfig, TaskError, sample_task
 from . import fs
 from .store import StoreError, atomic_write_table, episode_record, episodes_table, file_metadata, maps_table
 
@@ -111,13 +112,19 @@ def _team_size(rng: np.random.Generator, mix: dict[int, float]) -> int:
     return int(sizes[rng.choice(len(sizes), p=w / w.sum())])
 
 
+@dataclass
+class GenerationSections:
+    """The config sections a generation unit reads (a stage takes its own sections, not the root config)."""
+    map: MapConfig = field(default_factory=MapConfig)
+    task: TaskConfig = field(default_factory=TaskConfig)
+    expert: ExpertConfig = field(default_factory=ExpertConfig)
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
+
+
 def generate_unit(ctx: dict, payload: dict, cache: dict) -> dict:
     """Worker function (roken.units): run one unit, write its two shards, return its small summary."""
-    from ..config import Config
-    from ..configtools import from_dict
-
     if "cfg" not in cache:
-        cache["cfg"] = from_dict(Config, ctx["config"])
+        cache["cfg"] = from_dict(GenerationSections, {k: ctx["config"][k] for k in ("map", "task", "expert", "dataset")})
     cfg = cache["cfg"]
     dc = cfg.dataset
     key, out = payload["key"], ctx["out"]

@@ -57,6 +57,12 @@ class SampleConfig:
     augment: bool = True  # random dihedral transform of map and trajectories
     shuffle_robots: bool = True  # random robot order
     team_size_weights: dict[int, float] = field(default_factory=dict)  # resample episodes by team size; {} = as stored
+    # Sub-teams for clustered rollout (appendix "Masked Training and Clustered Rollout"): with subteam_prob a
+    # connected cluster of 2..subteam_max robots is cut from the team at t, rooted at the leader or (half the
+    # time) at another robot; a cluster without the leader has no goal and >= 1 robot given as a condition.
+    subteam_prob: float = 0.0
+    subteam_max: int = 4
+    comm_radius: float = 15.0  # R: robots within it are neighbours when a cluster is grown
 
     @property
     def step_scale(self) -> float:
@@ -78,8 +84,11 @@ def check(cfg: SampleConfig) -> None:
         raise ValueError("samples.horizon, interval, max_robots and num_waypoints must be >= 1")
     if cfg.patch % 2 == 0:
         raise ValueError(f"samples.patch must be odd (a patch centred on the robot's cell), got {cfg.patch}")
-    if not 0 <= cfg.condition_prob <= 1 or not 0 <= cfg.final_goal_prob <= 1:
-        raise ValueError("samples.condition_prob and samples.final_goal_prob are probabilities in [0, 1]")
+    if not all(0 <= p <= 1 for p in (cfg.condition_prob, cfg.final_goal_prob, cfg.subteam_prob)):
+        raise ValueError("samples.condition_prob, final_goal_prob and subteam_prob are probabilities in [0, 1]")
+    if cfg.subteam_max < 2:
+        raise ValueError(f"samples.subteam_max must be >= 2 (a cluster holds a condition and a generated robot), "
+                         f"got {cfg.subteam_max}")
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -251,6 +260,25 @@ def decode_chunk(chunk: np.ndarray, start: np.ndarray, cfg: SampleConfig) -> np.
     return (chunk + 1.0) * cfg.pos_scale
 
 
+def _subteam(start: np.ndarray, leader: int, rng: np.random.Generator, cfg: SampleConfig) -> tuple[np.ndarray, int]:
+    """A connected cluster of the team at positions start (N, 2), grown breadth-first over the communication
+    graph from its root; returns the member indices (root first) and the leader's index among them (-1 if out)."""
+    N = len(start)
+    size = int(rng.integers(2, min(N, cfg.subteam_max) + 1))
+    root = leader if rng.random() < 0.5 else int(rng.integers(0, N))
+    near = np.linalg.norm(start[:, None] - start[None], axis=-1) <= cfg.comm_radius
+    members, frontier = [root], [root]
+    while frontier and len(members) < size:
+        node = frontier.pop(0)
+        for j in rng.permutation(np.flatnonzero(near[node])):
+            if j not in members and len(members) < size:
+                members.append(int(j))
+                frontier.append(int(j))
+    members = np.asarray(members)
+    hit = np.flatnonzero(members == leader)
+    return members, int(hit[0]) if len(hit) else -1
+
+
 def sample_shapes(cfg: SampleConfig) -> dict[str, tuple[tuple[int, ...], type]]:
     """Shape and dtype of every array of one sample (SAMPLE_KEYS)."""
     R, H, K, P, S = cfg.max_robots, cfg.horizon, cfg.num_waypoints, cfg.patch, cfg.canvas
@@ -271,17 +299,24 @@ def make_sample(bank: EpisodeBank, i: int, rng: np.random.Generator, cfg: Sample
                          f"raise it with --set samples.max_robots={N} (the model's token count follows)")
     if T < 1:
         raise ValueError(f"episode {bank.episode_ids[i]} has no steps; drop it from the dataset")
-    # Goal along the leader's future, then the time t inside the sub-episode [0, t_g].
+    # The chunk first (any step with a future), then the goal along the leader's future (paper: "we randomly
+    # sample a fixed-length multi-robot action chunk and a goal position along the future trajectory of the
+    # leader"). Drawing the goal time first and the chunk before it made 67 % of goals lie within 32 m of the
+    # start, while evaluation goals are >= 50 m away.
+    t = int(rng.integers(0, T))
     final = rng.random() < cfg.final_goal_prob
-    t_g = T if final else int(rng.integers(1, T + 1))
-    t = int(rng.integers(0, t_g))
+    t_g = T if final else int(rng.integers(t + 1, T + 1))
     goal = bank.goal[i].astype(np.float32) if final else P[t_g, leader].astype(np.float32)
+    if N >= 2 and rng.random() < cfg.subteam_prob:
+        members, leader = _subteam(P[t], leader, rng, cfg)
+        P, N = P[:, members], len(members)
     idx = np.minimum(t + cfg.interval * np.arange(H + 1), t_g)
     points = P[idx]  # (H+1, N, 2)
     future = P[t:t_g + 1]  # (L, N, 2)
     wps = np.stack([_future_points(future[:, j], cfg.waypoint_spacing, K) for j in range(N)])  # (N, K, 2)
-    length = np.linalg.norm(np.diff(future[:, leader], axis=0), axis=1).sum()
-    wps[leader, cfg.waypoint_spacing * np.arange(1, K + 1) > length] = goal  # "filled with the goal"
+    if leader >= 0:
+        length = np.linalg.norm(np.diff(future[:, leader], axis=0), axis=1).sum()
+        wps[leader, cfg.waypoint_spacing * np.arange(1, K + 1) > length] = goal  # "filled with the goal"
 
     m = int(bank.map_index[i])
     occ, sdf = bank.occupancy[m], bank.sdf(m)
@@ -292,25 +327,28 @@ def make_sample(bank: EpisodeBank, i: int, rng: np.random.Generator, cfg: Sample
         goal = transform_points(goal, e, S)
     order = rng.permutation(N) if cfg.shuffle_robots else np.arange(N)
     points, wps = points[:, order], wps[order]
-    leader = int(np.flatnonzero(order == leader)[0])
+    leader = int(np.flatnonzero(order == leader)[0]) if leader >= 0 else -1
 
     start = points[0]  # (N, 2)
     occ_s, occ_l = local_patches(occ, start, cfg.patch, cfg.large_scale)
     traj_mask = np.zeros(N, dtype=np.float32)
-    if N >= 2 and rng.random() < cfg.condition_prob:
+    # A sub-team without the leader is a later cluster of clustered rollout: it always has >= 1 given robot.
+    if N >= 2 and (leader < 0 or rng.random() < cfg.condition_prob):
         traj_mask[rng.choice(N, size=int(rng.integers(1, N)), replace=False)] = 1.0
 
     out = {k: np.zeros(shape, dtype) for k, (shape, dtype) in sample_shapes(cfg).items()}
     out["goal"], out["num_robots"] = goal.astype(np.float32), np.int64(N)
     out["chunk"][:N] = encode_chunk(points, cfg)
     out["start"][:N] = start
-    out["rel_goal"][leader] = (goal - start[leader]) / cfg.pos_scale
-    out["goal_mask"][leader] = 1.0
+    if leader >= 0:
+        out["rel_goal"][leader] = (goal - start[leader]) / cfg.pos_scale
+        out["goal_mask"][leader] = 1.0
     out["traj_mask"][:N] = traj_mask
     out["robot_mask"][:N] = True
     out["waypoints"][:N] = (wps - start[:, None, :]) / cfg.waypoint_scale
     out["occ_small"][:N], out["occ_large"][:N] = occ_s, occ_l
-    out["map"][0], out["map"][1], out["map"][2] = occ, heatmap(start, S, cfg.heatmap_sigma), \
-        heatmap(goal[None], S, cfg.heatmap_sigma)
+    out["map"][0], out["map"][1] = occ, heatmap(start, S, cfg.heatmap_sigma)
+    if leader >= 0:  # the goal is shown only to a (sub-)team that holds the leader
+        out["map"][2] = heatmap(goal[None], S, cfg.heatmap_sigma)
     out["sdf"][:] = sdf
     return out

@@ -21,13 +21,13 @@ from ..configtools import from_dict, to_dict
 from ..data import fs
 from ..data.store import (StoreError, atomic_write_json, atomic_write_table, episode_record, episodes_table,
                           file_metadata, maps_table, read_episodes)
-from ..expert.laplacian import LaplacianExpert
+from ..expert.laplacian import ExpertConfig, LaplacianExpert
 from ..progress import Progress
 from ..units import InProcessRunner, Unit
 from ..world.grid import GridMap
 from ..world.loaders import MapError, find_map_files, load_map_file
-from ..world.maps import SPLITS, generate_map, split_size
-from ..world.tasks import TaskError, sample_task
+from ..world.maps import SPLITS, MapConfig, generate_map, split_size
+from ..world.tasks import TaskConfig, TaskError, sample_task
 from .metrics import format_table, summarize
 
 PLANNERS = ("laplacian",)
@@ -99,12 +99,19 @@ def run_planner(cfg, tasks, maps_by_id):
         raise ValueError(f"unknown planner {cfg.eval.planner!r}; available: {', '.join(PLANNERS)}")
 
 
+@dataclass
+class EvalSections:
+    """The config sections an evaluation unit reads."""
+    map: MapConfig = field(default_factory=MapConfig)
+    task: TaskConfig = field(default_factory=TaskConfig)
+    expert: ExpertConfig = field(default_factory=ExpertConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+
+
 def eval_unit(ctx: dict, payload: dict, cache: dict) -> list[dict]:
     """Worker function (roken.units): plan and score one unit's episodes; returns their rows."""
-    from ..config import Config
-
     if "cfg" not in cache:
-        cache["cfg"] = from_dict(Config, ctx["config"])
+        cache["cfg"] = from_dict(EvalSections, {k: ctx["config"][k] for k in ("map", "task", "expert", "eval")})
         cache["maps"] = {mid: GridMap(mid, occ, src) for mid, occ, src in ctx["maps"]}
     cfg, by_id = cache["cfg"], cache["maps"]
     n, tasks = payload["n"], payload["tasks"]

@@ -1,0 +1,141 @@
+"""Pretrain the Roken DiT on an expert dataset: in-process, or Ray Train (DDP) on a laptop or a cluster.
+
+    python pipelines/pretrain.py --data data/train --out runs/pre --config configs/pretrain/laptop.yaml --workers 0
+    python pipelines/pretrain.py --data data/train --out $PWD/runs/pre --config configs/pretrain/mixed.yaml --local --workers 2
+    ray job submit --runtime-env cluster/runtime_env.yaml --working-dir . -- \\
+        python pipelines/pretrain.py --data /shared/train --out /shared/runs/mixed \\
+        --config configs/pretrain/mixed.yaml --workers 4 --gpus-per-worker 1
+
+Writes OUT/checkpoint-NNNNNNN/ (model.safetensors with the EMA weights, config.json, train_state.pt),
+OUT/metrics.jsonl, TensorBoard files under OUT/tb and OUT/summary.json. Running the same command again on
+the same --out resumes from the latest checkpoint; a different model / loss / sample config there is refused.
+`--workers 0` runs the loop in this process without Ray (a GPU box without Ray, debugging).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from dataclasses import asdict
+from pathlib import Path
+
+from common import ROOT, add_common_args, explain_relative_out, named_overrides, wants_ray
+
+from roken.config import ConfigError, load_config
+from roken.configtools import from_dict, to_dict
+from roken.data.build import _changed_keys
+from roken.data.store import StoreError
+from roken.model.dit import PRESETS, preset
+from roken.train import checkpoint as ckpt
+from roken.train.data import check_dataset
+from roken.train.loop import Pretraining, PretrainSpec, summary_table
+
+# Sections that must match to resume a run; train.steps and the logging cadence may change (extend a run).
+RESUME_SECTIONS = ("model", "diffusion", "samples", "loss")
+RESUME_TRAIN_KEYS = ("batch_size", "lr", "weight_decay", "warmup_steps", "schedule", "min_lr_ratio", "grad_clip",
+                     "ema_decay", "seed", "val_fraction")
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", required=True, help="dataset folder or URI from pipelines/generate.py")
+    ap.add_argument("--out", required=True, help="run folder (checkpoints, metrics); an absolute path for Ray")
+    ap.add_argument("--val-data", help="held-out dataset (e.g. generated with --maps eval); default: "
+                                       "train.val_fraction of --data's maps")
+    ap.add_argument("--preset", choices=sorted(PRESETS), help="model size (sets the model section over --config)")
+    ap.add_argument("--steps", type=int, help="optimizer steps (train.steps)")
+    ap.add_argument("--batch-size", type=int, help="global batch (train.batch_size), split over the workers")
+    ap.add_argument("--gpus-per-worker", type=float, default=0.0, help="GPUs per Ray Train worker (0 = CPU, gloo)")
+    ap.add_argument("--cpus-per-worker", type=float, default=1.0, help="CPUs per Ray Train worker")
+    ap.add_argument("--max-failures", type=int, default=3, help="worker-group restarts from the last checkpoint")
+    add_common_args(ap)
+    return ap
+
+
+def overrides(args) -> list[str]:
+    pre = [f"model.{k}={v}" for k, v in asdict(preset(args.preset)).items()] if args.preset else []
+    renamed = argparse.Namespace(set=args.set, steps=args.steps, batch_size=args.batch_size)
+    return pre + named_overrides(renamed, "train", ("steps", "batch_size"))
+
+
+def check_resume(out: str, cfg) -> int:
+    """The step an existing run folder resumes from (0 if none); refuses a run made with another config."""
+    if not Path(out).is_dir():
+        return 0
+    found = ckpt.list_checkpoints(out)
+    if not found:
+        return 0
+    old = ckpt.read_config(found[-1])
+    new = to_dict(cfg)
+    changed = []
+    for sec in RESUME_SECTIONS:
+        changed += _changed_keys(old.get(sec, {}), json.loads(json.dumps(new[sec], default=str)), sec + ".")
+    changed += _changed_keys({k: old.get("train", {}).get(k) for k in RESUME_TRAIN_KEYS},
+                             {k: new["train"][k] for k in RESUME_TRAIN_KEYS}, "train.")
+    if changed:
+        raise StoreError(f"{out} holds a run made with a different config ({'; '.join(changed[:6])}); its "
+                         f"checkpoints are kept. Use a new --out, or the old settings to resume it")
+    return int(old.get("step", 0))
+
+
+def train_loop_per_worker(config: dict) -> None:
+    """Ray Train's per-worker function: the same loop as in-process, with the Ray backend."""
+    sys.path.insert(0, config["root"])
+    from roken.config import Config
+    from roken.ray_train import RayTrainBackend
+
+    cfg = from_dict(Config, config["config"])
+    Pretraining(PretrainSpec.of(cfg), config["data"], config["out"], config["val_data"],
+                backend=RayTrainBackend(cfg.loss, config["out"])).fit()
+
+
+def run_ray(args, cfg, out: str) -> None:
+    from roken import ray_pool, ray_train
+
+    resources = ray_pool.connect(args.address, args.local, args.num_cpus, code_root=str(ROOT), dashboard=True)
+    workers = args.workers or max(1, int(resources.get("GPU", 0) // max(args.gpus_per_worker, 1))
+                                  if args.gpus_per_worker else 1)
+    print(f"[pretrain] Ray Train: {workers} worker(s) x (CPU {args.cpus_per_worker}, GPU {args.gpus_per_worker}); "
+          f"global batch {cfg.train.batch_size} = {cfg.train.batch_size // workers} per worker", file=sys.stderr)
+    ray_train.fit(train_loop_per_worker, {"config": to_dict(cfg), "data": args.data, "out": out,
+                                          "val_data": args.val_data, "root": str(ROOT)},
+                  out, workers, args.cpus_per_worker, args.gpus_per_worker, args.max_failures,
+                  cfg.train.keep_checkpoints)
+
+
+def _absolute(location: str | None) -> str | None:
+    return location if location is None or "://" in location else os.path.abspath(location)
+
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
+    try:
+        cfg = load_config(args.config, overrides(args))
+        explain_relative_out(args.out)
+        if "://" in args.out:
+            raise ValueError(f"--out {args.out}: pretraining writes its run folder on a file system; give a local "
+                             f"or shared (NFS) path")
+        out = os.path.abspath(args.out)
+        args.data, args.val_data = _absolute(args.data), _absolute(args.val_data)  # Ray workers have another cwd
+        for d in (args.data, args.val_data):
+            if d:
+                check_dataset(d)
+        step = check_resume(out, cfg)
+        if step >= cfg.train.steps:
+            print(f"[pretrain] {out} is already at step {step} of train.steps={cfg.train.steps}; raise --steps "
+                  f"to train on", file=sys.stderr)
+        if wants_ray(args):
+            run_ray(args, cfg, out)
+        else:
+            Pretraining(PretrainSpec.of(cfg), args.data, out, args.val_data).fit()
+        summary = json.loads((Path(out) / "summary.json").read_text())
+    except (ConfigError, StoreError, ckpt.CheckpointError, ValueError, OSError, ConnectionError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(summary_table(summary))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,232 @@
+"""Checkpoints (ARCHITECTURE.md): one directory each, written atomically, loadable by any planner.
+
+    model.safetensors   the weights planners use (EMA for pretraining; fp16 allowed for shipping)
+    config.json         model, diffusion, samples, loss, the training section, task constants, dataset
+                        fingerprint, code version, step, validation metrics
+    train_state.pt      optional: weights, optimizer, schedule, EMA, step, RNG states (torch.load weights_only)
+
+A run folder holds checkpoints as sub-directories named `checkpoint-{step:07d}`; anything that takes a
+checkpoint also takes a run folder and picks its latest (or best) one.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+
+from ..configtools import ConfigError, from_dict
+from ..data.samples import SampleConfig
+from ..model.diffusion import DiffusionConfig, NoiseSchedule
+from ..model.dit import ModelConfig, RokenDiT
+from ..model.losses import LossConfig
+
+WEIGHTS, CONFIG, STATE = "model.safetensors", "config.json", "train_state.pt"
+PREFIX = "checkpoint-"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be used as asked, with the file and the keys at fault."""
+
+
+def checkpoint_name(step: int) -> str:
+    return f"{PREFIX}{step:07d}"
+
+
+def write(directory: str | Path, weights: dict[str, torch.Tensor], config: dict, train_state: dict | None = None,
+          half: bool = False) -> Path:
+    """Write the checkpoint files into `directory` (created; it should be a fresh temporary)."""
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    tensors = {k: (v.detach().to("cpu", torch.float16 if half and v.is_floating_point() else v.dtype)).contiguous()
+               for k, v in weights.items()}
+    save_file(tensors, str(d / WEIGHTS), metadata={"format": "pt", "step": str(config.get("step", ""))})
+    (d / CONFIG).write_text(json.dumps(config, indent=1, sort_keys=True, default=_json_default) + "\n")
+    if train_state is not None:
+        torch.save(train_state, d / STATE)
+    return d
+
+
+def _json_default(o):
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
+    if hasattr(o, "item"):
+        return o.item()
+    return str(o)
+
+
+def save_atomic(run_dir: str | Path, step: int, weights: dict, config: dict, train_state: dict | None = None,
+                half: bool = False) -> Path:
+    """Write run_dir/checkpoint-{step} through a hidden temporary renamed into place: a reader never sees a
+    half-written checkpoint, and a checkpoint of the same step already there is kept, not overwritten."""
+    run = Path(run_dir)
+    run.mkdir(parents=True, exist_ok=True)
+    final = run / checkpoint_name(step)
+    if final.exists():
+        return final
+    tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{checkpoint_name(step)}-", dir=run))
+    try:
+        write(tmp, weights, config, train_state, half)
+        os.rename(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return final
+
+
+def remove_temporaries(run_dir: str | Path) -> None:
+    for p in Path(run_dir).glob(".tmp-" + PREFIX + "*"):
+        shutil.rmtree(p, ignore_errors=True)
+
+
+def list_checkpoints(run_dir: str | Path) -> list[Path]:
+    """Complete checkpoints of a run folder (any sub-directory with config.json and weights), by step."""
+    run = Path(run_dir)
+    found = [p for p in run.iterdir() if p.is_dir() and not p.name.startswith(".")
+             and (p / CONFIG).is_file() and (p / WEIGHTS).is_file()] if run.is_dir() else []
+    return sorted(found, key=lambda p: (_read_config(p).get("step", -1), p.name))
+
+
+def prune(run_dir: str | Path, keep: int, score_key: str | None = None) -> None:
+    """Keep the newest `keep` checkpoints (and the best by `score_key`, lower is better) of a run folder."""
+    ckpts = list_checkpoints(run_dir)
+    if keep <= 0 or len(ckpts) <= keep:
+        return
+    protected = set(ckpts[-keep:])
+    best = find(run_dir, "best", score_key) if score_key else None
+    if best is not None:
+        protected.add(best)
+    for p in ckpts:
+        if p not in protected:
+            shutil.rmtree(p, ignore_errors=True)
+
+
+def find(path: str | Path, which: str = "latest", score_key: str = "val/losses/traj") -> Path:
+    """A checkpoint directory, or a run folder's latest / best (lowest `score_key` in its validation) one."""
+    p = Path(path)
+    if (p / CONFIG).is_file() or (p / WEIGHTS).is_file():
+        return p
+    if not p.exists():
+        raise CheckpointError(f"{p}: no such checkpoint or run folder")
+    ckpts = list_checkpoints(p)
+    if not ckpts:
+        raise CheckpointError(f"{p}: no checkpoint in this folder (a checkpoint directory holds {WEIGHTS} and "
+                              f"{CONFIG}); train one with pipelines/pretrain.py --out {p}")
+    if which == "latest":
+        return ckpts[-1]
+    if which != "best":
+        raise ValueError(f"which must be 'latest' or 'best', got {which!r}")
+    scored = [(v, c) for c in ckpts if (v := _read_config(c).get("validation", {}).get(score_key)) is not None]
+    return min(scored, key=lambda vc: vc[0])[1] if scored else ckpts[-1]
+
+
+def _read_config(d: Path) -> dict:
+    try:
+        return json.loads((d / CONFIG).read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def read_config(ckpt: str | Path) -> dict:
+    d = Path(ckpt)
+    try:
+        return json.loads((d / CONFIG).read_text())
+    except FileNotFoundError:
+        raise CheckpointError(f"{d / CONFIG}: missing; a checkpoint directory holds {WEIGHTS} and {CONFIG}") from None
+    except ValueError as e:
+        raise CheckpointError(f"{d / CONFIG}: not valid JSON ({e}); the checkpoint is corrupt") from None
+
+
+def cross_check(model: ModelConfig, samples: SampleConfig, task_max_step: float | None = None,
+                source: str = "config") -> None:
+    """The fields that several sections share must agree, or the model is fed inputs it was not trained on."""
+    pairs = [("samples.horizon", samples.horizon, "model.horizon", model.horizon),
+             ("samples.num_waypoints", samples.num_waypoints, "model.num_waypoints", model.num_waypoints),
+             ("samples.patch", samples.patch, "model.occ_patch", model.occ_patch),
+             ("samples.canvas", samples.canvas, "model.canvas", model.canvas)]
+    if task_max_step is not None:
+        pairs.append(("samples.max_step", samples.max_step, "task.max_step", task_max_step))
+    bad = [f"{a}={va} vs {b}={vb}" for a, va, b, vb in pairs if va != vb]
+    if model.canvas % model.map_patch or model.map_patch % 2:
+        bad.append(f"model.canvas={model.canvas} must be a multiple of the even model.map_patch={model.map_patch}")
+    if bad:
+        raise CheckpointError(f"{source}: inconsistent settings: {'; '.join(bad)}")
+
+
+@dataclass
+class Loaded:
+    """A ready model (EMA weights, eval mode) with the sections it must be used with."""
+    model: RokenDiT
+    schedule: NoiseSchedule
+    model_cfg: ModelConfig
+    diffusion: DiffusionConfig
+    samples: SampleConfig
+    loss: LossConfig
+    config: dict
+    path: Path
+
+
+def load(path: str | Path, device: str | torch.device = "cpu", which: str = "latest",
+         task_max_step: float | None = None, dtype: torch.dtype = torch.float32) -> Loaded:
+    """Load a checkpoint directory, or a run folder's latest / best checkpoint, as a ready model."""
+    d = find(path, which)
+    cfg = read_config(d)
+    try:
+        model_cfg = from_dict(ModelConfig, cfg["model"], "model.")
+        diff = from_dict(DiffusionConfig, cfg["diffusion"], "diffusion.")
+        samples = from_dict(SampleConfig, cfg["samples"], "samples.")
+        loss = from_dict(LossConfig, cfg.get("loss", {}), "loss.")
+    except KeyError as e:
+        raise CheckpointError(f"{d / CONFIG}: section {e} missing; the checkpoint is incomplete") from None
+    except ConfigError as e:
+        raise CheckpointError(f"{d / CONFIG}: {e} (written by another roken version?)") from None
+    cross_check(model_cfg, samples, task_max_step, str(d / CONFIG))
+    model = RokenDiT(model_cfg)
+    try:
+        weights = load_file(str(d / WEIGHTS))
+    except FileNotFoundError:
+        raise CheckpointError(f"{d / WEIGHTS}: missing") from None
+    except (SafetensorError, OSError, ValueError) as e:
+        raise CheckpointError(f"{d / WEIGHTS}: not a readable safetensors file ({e}); the checkpoint is "
+                              f"corrupt or was cut short") from None
+    load_weights(model, weights, str(d / WEIGHTS))
+    model = model.to(device=device, dtype=dtype).eval()
+    return Loaded(model, NoiseSchedule(diff, device), model_cfg, diff, samples, loss, cfg, d)
+
+
+def load_weights(model: torch.nn.Module, weights: dict[str, torch.Tensor], source: str) -> None:
+    """Copy `weights` into `model`; missing, unexpected or mis-shaped keys are one error naming them."""
+    own = model.state_dict()
+    missing = sorted(set(own) - set(weights))
+    extra = sorted(set(weights) - set(own))
+    shape = sorted(k for k in set(own) & set(weights) if own[k].shape != weights[k].shape)
+    if missing or extra or shape:
+        parts = []
+        if shape:
+            parts.append("shape mismatch " + ", ".join(f"{k} {tuple(weights[k].shape)} vs model "
+                                                       f"{tuple(own[k].shape)}" for k in shape[:4]))
+        if missing:
+            parts.append(f"missing {', '.join(missing[:4])}")
+        if extra:
+            parts.append(f"unexpected {', '.join(extra[:4])}")
+        raise CheckpointError(f"{source}: weights do not fit the model in its config.json ({'; '.join(parts)}); "
+                              f"a checkpoint of another model size or a different config.json")
+    model.load_state_dict({k: v.to(own[k].dtype) for k, v in weights.items()})
+
+
+def load_train_state(ckpt: str | Path) -> dict:
+    p = Path(ckpt) / STATE
+    try:
+        return torch.load(p, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise CheckpointError(f"{p}: missing; this checkpoint holds inference weights only and cannot resume "
+                              f"training") from None
+    except Exception as e:  # noqa: BLE001  (torch raises many types for a damaged pickle / zip)
+        raise CheckpointError(f"{p}: cannot be read ({type(e).__name__}: {e}); the file is corrupt") from None

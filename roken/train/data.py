@@ -1,0 +1,142 @@
+"""Training data for the loop: a step-indexed sample stream, the held-out split, and the dataset fingerprint.
+
+The sample at global index g is a pure function of (seed, g): g = epoch * len(bank) + position, each epoch
+visits the episodes in its own random order, and the sample's randomness comes from (seed, epoch, position).
+Step s of a run with global batch B uses indices s * B .. (s + 1) * B - 1, and rank r of W takes the r-th
+slice of B / W. So a run draws the same global batches whatever its number of workers, and resuming at step s
+needs nothing but s (no data-loader state to save).
+"""
+from __future__ import annotations
+
+import json
+import zlib
+from functools import lru_cache
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import torch
+
+from ..data import fs, shards
+from ..data.loader import collate
+from ..data.samples import EpisodeBank, MapStore, SampleConfig, check, make_sample
+
+EPISODE_COLUMNS = ["episode_id", "map_id", "num_robots", "leader", "num_steps", "goal", "positions"]
+
+
+class SampleStream(torch.utils.data.Dataset):
+    """Global sample index -> training sample (see the module docstring)."""
+
+    def __init__(self, bank: EpisodeBank, cfg: SampleConfig, seed: int = 0):
+        check(cfg)
+        self.bank, self.cfg, self.seed = bank, cfg, seed
+        weights = bank.episode_weights(cfg.team_size_weights)
+        self.cdf = None if weights is None else np.cumsum(weights)
+        self._order = lru_cache(maxsize=2)(self._epoch_order)
+
+    def _epoch_order(self, epoch: int) -> np.ndarray:
+        return np.random.default_rng([self.seed, epoch, 0x5EED]).permutation(len(self.bank))
+
+    def __len__(self) -> int:  # nominal: indices are unbounded, one epoch is one pass over the episodes
+        return len(self.bank)
+
+    def __getitem__(self, g: int) -> dict[str, np.ndarray]:
+        epoch, pos = divmod(int(g), len(self.bank))
+        rng = np.random.default_rng([self.seed, epoch, pos])
+        if self.cdf is None:
+            i = int(self._order(epoch)[pos])
+        else:
+            i = min(int(np.searchsorted(self.cdf, rng.random() * self.cdf[-1], side="right")), len(self.bank) - 1)
+        return make_sample(self.bank, i, rng, self.cfg)
+
+
+class StepIndices(torch.utils.data.Sampler):
+    """The global indices rank `rank` of `world` draws for steps start..stop-1 (global batch `batch`)."""
+
+    def __init__(self, start: int, stop: int, batch: int, rank: int = 0, world: int = 1):
+        if batch % world:
+            raise ValueError(f"train.batch_size={batch} is not divisible by the {world} workers; "
+                             f"choose a multiple of the worker count")
+        self.start, self.stop, self.batch, self.rank, self.local = start, stop, batch, rank, batch // world
+
+    def __len__(self) -> int:
+        return max(self.stop - self.start, 0) * self.local
+
+    def __iter__(self):
+        for s in range(self.start, self.stop):
+            base = s * self.batch + self.rank * self.local
+            yield from range(base, base + self.local)
+
+
+def make_loader(stream: SampleStream, start: int, stop: int, batch: int, rank: int, world: int, workers: int,
+                pin: bool = False) -> torch.utils.data.DataLoader:
+    sampler = StepIndices(start, stop, batch, rank, world)
+    # Its own generator: the DataLoader draws a base seed when iterated, which must not consume the global
+    # RNG that the diffusion noise comes from (a resumed run would otherwise draw other noise).
+    gen = torch.Generator().manual_seed(start * 7919 + rank)
+    return torch.utils.data.DataLoader(
+        stream, batch_size=sampler.local, sampler=sampler, collate_fn=collate, num_workers=workers,
+        pin_memory=pin, persistent_workers=False, generator=gen, prefetch_factor=4 if workers > 0 else None,
+        worker_init_fn=_worker_init if workers > 0 else None)
+
+
+def _worker_init(_: int) -> None:
+    torch.set_num_threads(1)  # sample making is numpy; keep loader processes off the trainer's cores
+
+
+def _held_out(map_ids: pa.Array, fraction: float, seed: int) -> np.ndarray:
+    """True for episodes on held-out maps: a hash of (seed, map_id) below `fraction` (stable across runs)."""
+    h = np.array([zlib.crc32(f"{seed}:{m}".encode()) for m in map_ids.to_pylist()], dtype=np.float64)
+    return h / 2 ** 32 < fraction
+
+
+def load_banks(data: str, canvas: int, val_data: str | None = None, val_fraction: float = 0.0,
+               seed: int = 0) -> tuple[EpisodeBank, EpisodeBank | None]:
+    """The training bank of `data` and the validation bank: `val_data` (e.g. an `eval`-split dataset), else the
+    episodes of a `val_fraction` of `data`'s maps (never trained on), else None. Successful episodes only."""
+    train_tab, maps = _read(data)
+    store = MapStore(maps, canvas)
+    val = None
+    if val_data:
+        val_tab, val_maps = _read(val_data)
+        val = EpisodeBank.from_arrow(val_tab, MapStore(val_maps, canvas))
+    elif val_fraction > 0:
+        held = _held_out(train_tab.column("map_id").combine_chunks(), val_fraction, seed)
+        if held.all() or not held.any():
+            raise ValueError(f"{data}: train.val_fraction={val_fraction} holds out {int(held.sum())} of "
+                             f"{len(held)} episodes' maps; use a dataset with more maps or pass --val-data")
+        val = EpisodeBank.from_arrow(train_tab.filter(pa.array(held)), store)
+        train_tab = train_tab.filter(pa.array(~held))
+    return EpisodeBank.from_arrow(train_tab, store), val
+
+
+def _read(location: str) -> tuple[pa.Table, pa.Table]:
+    check_dataset(location)
+    episodes = shards.read_table(location, "episodes", columns=EPISODE_COLUMNS, successful_only=True)
+    return episodes, shards.read_table(location, "maps")
+
+
+def check_dataset(location: str) -> int:
+    """Fail early, naming the folder and the fix, on a dataset that cannot be trained on (before any worker
+    starts or anything is written); returns the number of successful episodes."""
+    if not fs.exists(fs.join(location, "episodes")):
+        raise ValueError(f"--data {location}: no dataset there (no episodes/ folder); make one with "
+                         f"pipelines/generate.py --out {location}")
+    success = shards.read_table(location, "episodes", columns=["success"]).column("success")
+    n = int(pc.sum(success).as_py() or 0)
+    if len(success) == 0:
+        raise ValueError(f"--data {location}: the dataset holds no episodes; generate it first")
+    if n == 0:
+        raise ValueError(f"--data {location}: none of its {len(success)} episodes is successful, so there is "
+                         f"nothing to learn from; regenerate it (the expert keeps successful episodes by default)")
+    return n
+
+
+def fingerprint(location: str) -> dict:
+    """What identifies the training data in a checkpoint: the dataset's manifest fingerprint and size."""
+    try:
+        m = json.loads(fs.read_bytes(fs.join(location, "manifest.json")))
+    except (OSError, ValueError):
+        return {"location": str(location), "fingerprint": None}
+    return {"location": str(location), "fingerprint": m.get("fingerprint"), "episodes": m.get("episodes"),
+            "maps": m.get("maps")}

@@ -1,0 +1,60 @@
+"""Ship a trained model: a checkpoint's EMA weights in half precision, its config.json and a model card.
+
+    roken export runs/mixed models/roken-small-mixed --which best
+"""
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+from safetensors.torch import load_file
+
+from . import checkpoint as ckpt
+from .validation import CHUNK_METRICS
+
+
+def export(source: str | Path, out: str | Path, which: str = "latest", notes: str = "") -> Path:
+    src = ckpt.find(source, which)
+    loaded = ckpt.load(src)  # fails here, naming the file, on anything the planner could not load
+    cfg = loaded.config
+    dest = Path(out)
+    if dest.exists() and not (dest / ckpt.CONFIG).is_file():
+        raise ValueError(f"{dest} exists and is not a checkpoint directory; choose another output folder")
+    tmp = dest.parent / f".tmp-{dest.name}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    ckpt.write(tmp, load_file(str(src / ckpt.WEIGHTS)), cfg, half=True)
+    (tmp / "MODEL_CARD.md").write_text(model_card(cfg, src, loaded.model.num_params(), notes))
+    if dest.exists():  # replace a shipped model, not add one beside it
+        shutil.rmtree(dest)
+    tmp.rename(dest)
+    return dest
+
+
+def model_card(cfg: dict, src: Path, params: int, notes: str) -> str:
+    m, t, d, v = cfg["model"], cfg["train"], cfg.get("dataset", {}), cfg.get("validation", {})
+    rows = []
+    for name in ("model", "still", "expert"):
+        if f"val/{name}/obs_frac" in v:
+            rows.append(f"| {name} | " + " | ".join(f"{v[f'val/{name}/{k}']:.3f}" for k in CHUNK_METRICS) + " |")
+    table = "\n".join([f"| chunk | {' | '.join(CHUNK_METRICS)} |", "|" + " --- |" * (len(CHUNK_METRICS) + 1), *rows])
+    code = cfg.get("code_version", {})
+    return f"""# Roken DiT checkpoint
+
+- Architecture: width {m['width']}, {m['depth']} decoder layers, {m['heads']} heads, MLP {m['mlp_hidden']},
+  map encoder {m['map_channels']} channels x {m['map_blocks']} blocks: {params:,} parameters; weights in fp16
+  (EMA of the training weights), loaded in fp32 by `roken.train.checkpoint.load`.
+- Trained from `{src}` at step {cfg['step']}: global batch {t['batch_size']}, AdamW lr {t['lr']}, {t['schedule']}
+  schedule, EMA {t['ema_decay']}, seed {t['seed']}; loss {json.dumps(cfg['loss'])}.
+- Samples: {json.dumps({k: cfg['samples'][k] for k in ('condition_prob', 'subteam_prob', 'final_goal_prob', 'team_size_weights')})}.
+- Data: `{d.get('location')}` (fingerprint {d.get('fingerprint')}, {d.get('episodes')} episodes on {d.get('maps')} maps).
+- Code: roken {code.get('roken')}, git {code.get('git')}.
+
+## Validation (held-out prompts, DDIM-{t.get('ddim_steps', 10)}, one chunk each)
+
+Held-out loss: total {v.get('val/losses/total', float('nan')):.4f}, L_traj {v.get('val/losses/traj', float('nan')):.4f}.
+
+{table}
+
+{notes}
+"""

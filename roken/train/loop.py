@@ -1,0 +1,344 @@
+"""The pretraining loop, without Ray: AdamW, warm-up + cosine / constant schedule, gradient clipping, EMA,
+bf16 autocast on CUDA, optional torch.compile, validation, checkpoints, resume.
+
+    run = Pretraining(spec, data="data/train", out="runs/x")     # in-process (pipelines/pretrain.py --workers 0)
+    run.fit()
+
+The same `fit` runs in every Ray Train worker (pipelines/pretrain.py); a `Backend` says what differs there:
+rank and world size, the DDP wrapper, where checkpoints go and where a resumed run's state comes from.
+"""
+from __future__ import annotations
+
+import copy
+import math
+import random
+import shutil
+import tempfile
+import time
+from contextlib import nullcontext
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..data.build import code_version
+from ..data.loader import to_device
+from ..data.store import atomic_write_json
+from ..data.samples import SampleConfig
+from ..model.diffusion import DiffusionConfig, NoiseSchedule
+from ..model.dit import ModelConfig, RokenDiT
+from ..model.losses import LossConfig, check as check_loss, pretraining_loss
+from ..world.tasks import TaskConfig
+from . import checkpoint as ckpt
+from .data import SampleStream, fingerprint, load_banks, make_loader
+from .logger import RunLogger, duration
+from .validation import Validator, format_validation
+
+
+@dataclass
+class TrainConfig:
+    steps: int = 60_000  # optimizer steps (paper: 200 epochs of its dataset at batch 128)
+    batch_size: int = 128  # global batch, split over the workers (paper)
+    lr: float = 5e-4  # AdamW (paper)
+    weight_decay: float = 0.01  # AdamW's usual default; the paper names AdamW without a value
+    warmup_steps: int = 1000  # linear warm-up from 0
+    schedule: str = "cosine"  # "cosine" (to min_lr_ratio * lr at `steps`) or "constant" after warm-up
+    min_lr_ratio: float = 0.1
+    grad_clip: float = 1.0  # max global gradient norm (0 = off)
+    ema_decay: float = 0.999  # EMA of the weights, the weights planners load; warmed up as min(d, (1+s)/(10+s))
+    log_every: int = 50
+    eval_every: int = 1000  # validation (loss terms + sampled-chunk metrics on held-out prompts); 0 = off
+    checkpoint_every: int = 1000
+    keep_checkpoints: int = 3  # the newest ones (and the best by validation L_traj) are kept
+    seed: int = 0
+    val_fraction: float = 0.05  # maps held out of --data when no --val-data is given
+    val_prompts: int = 64
+    ddim_steps: int = 10  # sampler steps of the validation chunks
+    loader_workers: int = 2  # DataLoader processes per training worker
+    compile: bool = False  # torch.compile the model (GPU; minutes of compile time)
+    precision: str = "auto"  # "auto" = bf16 autocast on CUDA, fp32 on CPU; or "fp32" / "bf16"
+    device: str = "auto"  # "auto" = CUDA when available
+
+
+def check(cfg: TrainConfig) -> None:
+    if cfg.steps < 1 or cfg.batch_size < 1:
+        raise ValueError(f"train.steps and train.batch_size must be >= 1 (got {cfg.steps}, {cfg.batch_size})")
+    if cfg.schedule not in ("cosine", "constant"):
+        raise ValueError(f"train.schedule must be 'cosine' or 'constant', got {cfg.schedule!r}")
+    if cfg.precision not in ("auto", "fp32", "bf16"):
+        raise ValueError(f"train.precision must be 'auto', 'fp32' or 'bf16', got {cfg.precision!r}")
+    if not 0 <= cfg.ema_decay < 1 or cfg.lr <= 0 or not 0 <= cfg.val_fraction < 1:
+        raise ValueError("train.ema_decay in [0, 1), train.lr > 0, train.val_fraction in [0, 1)")
+    for k in ("log_every", "checkpoint_every"):
+        if getattr(cfg, k) < 1:
+            raise ValueError(f"train.{k} must be >= 1, got {getattr(cfg, k)}")
+
+
+@dataclass
+class PretrainSpec:
+    """The sections pretraining reads (and writes into every checkpoint's config.json)."""
+    train: TrainConfig = field(default_factory=TrainConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
+    samples: SampleConfig = field(default_factory=SampleConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    task: TaskConfig = field(default_factory=TaskConfig)
+
+    @classmethod
+    def of(cls, cfg) -> "PretrainSpec":
+        return cls(cfg.train, cfg.model, cfg.diffusion, cfg.samples, cfg.loss, cfg.task)
+
+
+def lr_factor(step: int, cfg: TrainConfig) -> float:
+    if step < cfg.warmup_steps:
+        return (step + 1) / cfg.warmup_steps
+    if cfg.schedule == "constant":
+        return 1.0
+    t = min(1.0, (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps))
+    return cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * t))
+
+
+def pick_device(name: str) -> torch.device:
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu") if name == "auto" else torch.device(name)
+
+
+class LocalBackend:
+    """In-process: one worker, checkpoints written straight into the run folder."""
+    rank, world = 0, 1
+
+    def __init__(self, run_dir: str | Path, device: torch.device):
+        self.run_dir, self.device = Path(run_dir), device
+
+    def prepare(self, model: torch.nn.Module) -> torch.nn.Module:
+        return model
+
+    def resume_from(self) -> Path | None:
+        ckpt.remove_temporaries(self.run_dir)
+        found = ckpt.list_checkpoints(self.run_dir)
+        return found[-1] if found else None
+
+    def report(self, step: int, metrics: dict, write=None, keep: int = 3) -> None:
+        """`write(directory)` fills a checkpoint; it goes to run_dir/checkpoint-{step} atomically."""
+        if write is None:
+            return
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        final = self.run_dir / ckpt.checkpoint_name(step)
+        tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{final.name}-", dir=self.run_dir))
+        try:
+            write(tmp)
+            if not final.exists():  # never overwrite a checkpoint
+                tmp.rename(final)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+        ckpt.prune(self.run_dir, keep, "val/losses/traj")
+
+
+class Pretraining:
+    def __init__(self, spec: PretrainSpec, data: str, out: str | Path, val_data: str | None = None,
+                 backend=None, log_stream=None):
+        check(spec.train)
+        check_loss(spec.loss)
+        ckpt.cross_check(spec.model, spec.samples, spec.task.max_step, "config")
+        self.spec, self.data, self.out = spec, data, Path(out)
+        t = spec.train
+        self.device = getattr(backend, "device", None) or pick_device(t.device)
+        self.backend = backend or LocalBackend(self.out, self.device)
+        self.rank, self.world = self.backend.rank, self.backend.world
+        if t.batch_size % self.world:
+            raise ValueError(f"train.batch_size={t.batch_size} is not divisible by {self.world} workers")
+        self.main = self.rank == 0
+        if self.device.type == "cpu":
+            torch.set_flush_denormal(True)  # zero-initialised AdaLN drives Adam states into denormals: 4x slower
+        self.train_bank, self.val_bank = load_banks(data, spec.samples.canvas, val_data, t.val_fraction, t.seed)
+        self.log_stream = log_stream
+        self.amp = (t.precision == "bf16") or (t.precision == "auto" and self.device.type == "cuda")
+
+    # -- model, optimizer, state -------------------------------------------------------------------------
+    def _build(self):
+        t = self.spec.train
+        torch.manual_seed(t.seed)  # identical initial weights on every rank (DDP also broadcasts them)
+        self.model = RokenDiT(self.spec.model).to(self.device)
+        self.ema = copy.deepcopy(self.model).requires_grad_(False).eval()
+        decay, no_decay = [], []
+        for name, p in self.model.named_parameters():
+            (decay if p.ndim >= 2 and "phi_mg" not in name and "phi_mtau" not in name else no_decay).append(p)
+        self.opt = torch.optim.AdamW([{"params": decay, "weight_decay": t.weight_decay},
+                                      {"params": no_decay, "weight_decay": 0.0}], lr=t.lr, betas=(0.9, 0.999),
+                                     fused=self.device.type == "cuda")
+        self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, lambda s: lr_factor(s, t))
+        self.noise = NoiseSchedule(self.spec.diffusion, self.device)
+        self.net = self.backend.prepare(self.model)
+        if t.compile:
+            self.net = torch.compile(self.net)
+        self.step = 0
+
+    def state(self) -> dict:
+        return {"model": self.model.state_dict(), "ema": self.ema.state_dict(), "optimizer": self.opt.state_dict(),
+                "scheduler": self.sched.state_dict(), "step": self.step,
+                "rng": {"torch": torch.get_rng_state(), "numpy": _np_state(), "python": _py_state(),
+                        "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []}}
+
+    def load_state(self, s: dict) -> None:
+        self.model.load_state_dict(s["model"])
+        self.ema.load_state_dict(s["ema"])
+        self.opt.load_state_dict(s["optimizer"])
+        self.sched.load_state_dict(s["scheduler"])
+        self.step = int(s["step"])
+        torch.set_rng_state(s["rng"]["torch"])
+        if s["rng"].get("cuda") and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(s["rng"]["cuda"])
+        _set_np_state(s["rng"]["numpy"])
+        _set_py_state(s["rng"]["python"])
+
+    def config_dict(self, validation: dict | None = None) -> dict:
+        return {"model": asdict(self.spec.model), "diffusion": asdict(self.spec.diffusion),
+                "samples": asdict(self.spec.samples), "loss": asdict(self.spec.loss), "train": asdict(self.spec.train),
+                "task": asdict(self.spec.task), "dataset": fingerprint(self.data), "code_version": code_version(),
+                "step": self.step, "world_size": self.world, "validation": validation or {},
+                "kind": "roken-pretraining"}
+
+    # -- one optimizer step --------------------------------------------------------------------------------
+    def train_step(self, batch: dict) -> dict[str, torch.Tensor]:
+        t = self.spec.train
+        with torch.autocast(self.device.type, dtype=torch.bfloat16) if self.amp else nullcontext():
+            loss, logs = pretraining_loss(self.net, self.noise, batch, self.spec.loss, self.spec.samples,
+                                          step=self.step)
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), t.grad_clip if t.grad_clip > 0 else float("inf"))
+        self.opt.step()
+        self.sched.step()
+        self._ema_update()
+        self.step += 1
+        logs["charts/grad_norm"] = norm.detach()
+        return logs
+
+    @torch.no_grad()
+    def _ema_update(self) -> None:
+        d = min(self.spec.train.ema_decay, (1 + self.step) / (10 + self.step))
+        ema, cur = list(self.ema.parameters()), list(self.model.parameters())
+        torch._foreach_lerp_(ema, cur, 1 - d)
+
+    # -- the run -----------------------------------------------------------------------------------------
+    def fit(self) -> dict:
+        t = self.spec.train
+        self._build()
+        resume = self.backend.resume_from()
+        if resume is not None:
+            self.load_state(ckpt.load_train_state(resume))
+        log = RunLogger(self.out, self.main, self.step, self.log_stream)
+        start = self.step
+        stream = SampleStream(self.train_bank, self.spec.samples, t.seed)
+        validator = None
+        if self.main and self.val_bank is not None and t.eval_every > 0:
+            validator = Validator(self.val_bank, self.spec.samples, self.spec.loss, self.noise, t.val_prompts,
+                                  t.ddim_steps, self.spec.task.d_obs_min, self.spec.task.d_coll_min,
+                                  self.spec.task.comm_radius, seed=t.seed + 1234)
+        local = t.batch_size // self.world
+        log.print(f"[pretrain] {self.spec.model.width}w x {self.spec.model.depth} layers, "
+                  f"{self.model.num_params() / 1e6:.2f}M params on {self.device}{' bf16' if self.amp else ''}; "
+                  f"{len(self.train_bank)} training episodes, "
+                  f"{len(self.val_bank) if self.val_bank is not None else 0} held out; global batch {t.batch_size} "
+                  f"= {local} x {self.world} worker(s); "
+                  + (f"resuming at step {start} from {resume}" if resume else f"steps 0..{t.steps}"))
+        loader = make_loader(stream, start, t.steps, t.batch_size, self.rank, self.world, t.loader_workers,
+                             pin=self.device.type == "cuda")
+        last_val: dict = {}
+        sums: dict[str, float] = {}
+        n_sums, wait, t_win, t0 = 0, 0.0, time.perf_counter(), time.perf_counter()
+        it = iter(loader)
+        while self.step < t.steps:
+            w0 = time.perf_counter()
+            batch = to_device(next(it), self.device)
+            wait += time.perf_counter() - w0
+            logs = self.train_step(batch)
+            for k, v in logs.items():
+                sums[k] = sums.get(k, 0.0) + float(v)
+            n_sums += 1
+            metrics = {}
+            if self.step % t.log_every == 0 or self.step == t.steps:
+                now = time.perf_counter()
+                rate = n_sums * t.batch_size / (now - t_win)
+                metrics = {k: v / n_sums for k, v in sums.items()} | {
+                    "charts/lr": self.sched.get_last_lr()[0], "charts/samples_per_s": rate,
+                    "charts/data_wait_frac": wait / (now - t_win), "charts/epoch": self.step * t.batch_size /
+                    len(self.train_bank)}
+                eta = (t.steps - self.step) * t.batch_size / rate
+                log.print(f"[pretrain] step {self.step}/{t.steps} ({100 * self.step / t.steps:.1f}%) "
+                          f"loss {metrics['losses/total']:.4f} traj {metrics['losses/traj']:.4f}"
+                          + "".join(f" {k[7:]} {metrics[k]:.4f}" for k in ("losses/wp", "losses/occ", "losses/sdf")
+                                    if k in metrics)
+                          + f" | {rate:.0f} samples/s, data wait {100 * metrics['charts/data_wait_frac']:.0f}%, "
+                          f"lr {metrics['charts/lr']:.2e}, ETA {duration(eta)}")
+                sums, n_sums, wait, t_win = {}, 0, 0.0, now
+            if validator is not None and (self.step % t.eval_every == 0 or self.step == t.steps):
+                v0 = time.perf_counter()
+                last_val = validator.evaluate(self.ema, self.device, _autocast(self.device, self.amp))
+                metrics |= last_val
+                t_win += time.perf_counter() - v0  # validation time does not count against the training rate
+                log.print(f"[pretrain] validation at step {self.step}: held-out loss "
+                          f"{last_val['val/losses/total']:.4f} (traj {last_val['val/losses/traj']:.4f})\n"
+                          + format_validation(last_val))
+            if metrics:
+                log.log(self.step, metrics)
+            if self.step % t.checkpoint_every == 0 or self.step == t.steps:  # every rank reports together
+                writer = self._writer(last_val) if self.main else None
+                self.backend.report(self.step, {"step": self.step} | _scalars(metrics), writer, t.keep_checkpoints)
+        wall = time.perf_counter() - t0
+        log.close()
+        summary = {"steps": self.step, "resumed_from": start, "samples": (self.step - start) * t.batch_size,
+                   "wall_s": wall, "workers": self.world, "global_batch": t.batch_size,
+                   "final": {k: v for k, v in _scalars(metrics).items() if k.startswith("losses/")},
+                   "validation": _scalars(last_val), "checkpoint": str(self.out / ckpt.checkpoint_name(self.step))}
+        if self.main:
+            atomic_write_json(summary, self.out / "summary.json")
+        return summary
+
+    def _writer(self, validation: dict):
+        config, state = self.config_dict(_scalars(validation)), self.state()
+        weights = {k: v.detach().clone() for k, v in self.ema.state_dict().items()}
+
+        def write(directory: Path) -> None:
+            ckpt.write(directory, weights, config, state)
+        return write
+
+
+def _autocast(device: torch.device, amp: bool):
+    return torch.autocast(device.type, dtype=torch.bfloat16) if amp else None
+
+
+def _scalars(d: dict) -> dict:
+    return {k: float(v) for k, v in d.items()}
+
+
+# RNG states as tensors / plain lists, so train_state.pt loads with weights_only=True.
+def _np_state() -> dict:
+    s = np.random.get_state()
+    return {"keys": torch.from_numpy(s[1].astype(np.int64)), "pos": int(s[2]), "gauss": [int(s[3]), float(s[4])]}
+
+
+def _set_np_state(s: dict) -> None:
+    np.random.set_state(("MT19937", s["keys"].numpy().astype(np.uint32), s["pos"], s["gauss"][0], s["gauss"][1]))
+
+
+def _py_state() -> list:
+    v, internal, g = random.getstate()
+    return [v, list(internal), g]
+
+
+def _set_py_state(s: list) -> None:
+    random.setstate((s[0], tuple(s[1]), s[2]))
+
+
+def summary_table(summary: dict) -> str:
+    rows = [("steps", f"{summary['resumed_from']} -> {summary['steps']}"), ("samples", f"{summary['samples']:,}"),
+            ("wall time", duration(summary["wall_s"]))]
+    rows += [(k, f"{v:.4f}") for k, v in sorted(summary["final"].items())]
+    v = summary.get("validation") or {}
+    rows += [(k, f"{v[k]:.4f}") for k in ("val/losses/total", "val/losses/traj") if k in v]
+    width = max(len(r[0]) for r in rows)
+    out = "\n".join(f"{k:<{width}}  {val}" for k, val in rows)
+    if v:
+        out += "\nvalidation chunks (DDIM, held-out prompts):\n" + format_validation(v)
+    return out + f"\ncheckpoint: {summary['checkpoint']}"
