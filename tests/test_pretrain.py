@@ -206,3 +206,13 @@ def test_shard_runs_equal_one_run_byte_for_byte(tmp_path):
     r = subprocess.run([sys.executable, "-m", "roken", "validate", str(tmp_path / "two")], capture_output=True,
                        text=True, timeout=120)
     assert r.returncode == 0 and "complete" in r.stdout
+
+
+@pytest.mark.parametrize("recipe", sorted(p.name for p in (ROOT / "configs" / "pretrain").glob("*.yaml")))
+def test_recipes_load_and_are_consistent(recipe):
+    cfg = load_config(ROOT / "configs" / "pretrain" / recipe)
+    ckpt.cross_check(cfg.model, cfg.samples, cfg.task.max_step, recipe)
+    assert cfg.train.batch_size in (32, 128) and cfg.train.lr == 5e-4
+    if recipe.startswith("four"):
+        assert cfg.samples.team_size_weights == {4: 1.0}
+    assert (cfg.samples.subteam_prob > 0) == (recipe == "four-masked.yaml")

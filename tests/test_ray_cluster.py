@@ -78,6 +78,21 @@ def test_job_submit_generates_20_maps(head, tmp_path):
     assert seconds < 120
 
 
+def test_job_submit_pretrains_with_two_ddp_workers(head, tmp_path, expert_dataset):
+    out = tmp_path / "run"
+    r = subprocess.run(["ray", "job", "submit", "--address", head["JOBS"], "--runtime-env",
+                        str(ROOT / "cluster" / "runtime_env.yaml"), "--working-dir", str(ROOT), "--",
+                        "python", "pipelines/pretrain.py", "--data", expert_dataset, "--out", str(out),
+                        "--preset", "tiny", "--steps", "2", "--batch-size", "4", "--workers", "2",
+                        "--set", "train.loader_workers=0", "--set", "train.val_fraction=0.34",
+                        "--set", "train.val_prompts=2", "--set", "train.log_every=1"],
+                       env=head, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert "succeeded" in r.stdout + r.stderr and "2 x 2 worker(s)" in r.stdout + r.stderr
+    cfg = json.loads((out / "checkpoint-0000002" / "config.json").read_text())
+    assert cfg["world_size"] == 2 and "runtime_resources" in cfg["code_version"]["path"]
+
+
 def test_worker_killed_mid_run_is_retried(head, tmp_path):
     ref = tmp_path / "ref"
     args = ["--maps", "train", "--num-maps", "10", "--episodes-per-map", "3", "--set", "dataset.maps_per_unit=1",

@@ -117,6 +117,9 @@ class MapEncoder(nn.Module):
         self.norm = nn.LayerNorm(cfg.width)
 
     def forward(self, m: torch.Tensor) -> torch.Tensor:
+        # channels_last (NHWC): oneDNN's fast convolution / GroupNorm layout; the encoder is ~95 % of a `small`
+        # training step on a CPU, and this layout makes it 27 % faster there (benchmarks/README.md).
+        m = m.contiguous(memory_format=torch.channels_last)
         h = self.blocks(self.stem(m))  # (B, C, S/2, S/2)
         h = self.patch(h).flatten(2).transpose(1, 2)  # (B, M, width), row-major patches
         return self.norm(h + self.pos)
@@ -231,6 +234,7 @@ class RokenDiT(nn.Module):
             elif isinstance(m, nn.Embedding):
                 nn.init.normal_(m.weight, std=0.02)
         self.apply(basic)
+        self.map_encoder.to(memory_format=torch.channels_last)  # conv weights in the layout of the input
         for lin in (self.t_embed.mlp[0], self.t_embed.mlp[2]):
             nn.init.normal_(lin.weight, std=0.02)
         # AdaLN-Zero: every block starts as the identity on the gated paths, the noise output starts at 0.
