@@ -40,6 +40,10 @@ def named_overrides(args, section: str, names: tuple[str, ...]) -> list[str]:
 
 
 def wants_ray(args) -> bool:
+    if args.workers is not None and args.workers < 0:
+        raise ValueError(f"--workers {args.workers}: must be >= 0 (0 = in-process, no Ray)")
+    if args.num_cpus is not None and args.num_cpus < 1:
+        raise ValueError(f"--num-cpus {args.num_cpus}: must be >= 1 (CPUs of the --local cluster)")
     if args.workers == 0:
         if args.local or args.address:
             raise ValueError("--workers 0 runs in-process; drop --local / --address, or give --workers >= 1")

@@ -17,7 +17,7 @@ from common import add_common_args, explain_relative_out, make_runner, named_ove
 
 from roken.config import ConfigError, load_config
 from roken.data.store import StoreError
-from roken.eval.harness import evaluate
+from roken.eval.harness import check, evaluate
 
 
 def parser() -> argparse.ArgumentParser:
@@ -29,6 +29,8 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--num-maps", type=int, help="use at most this many maps")
     ap.add_argument("--seed", type=int, help="task seed")
     ap.add_argument("--out", required=True, help="output folder or URI (maps/, episodes/, metrics.json)")
+    ap.add_argument("--overwrite", action="store_true",
+                    help="replace an evaluation made with a different config in --out")
     add_common_args(ap)
     return ap
 
@@ -42,7 +44,8 @@ def main(argv=None) -> int:
     try:
         cfg = load_config(args.config, overrides(args))
         explain_relative_out(args.out)
-        metrics = evaluate(cfg, args.out, make_runner(args))
+        check(cfg.eval)  # before a Ray cluster starts or anything is written
+        metrics = evaluate(cfg, args.out, make_runner(args), overwrite=args.overwrite)
     except (ConfigError, StoreError, ValueError, OSError, ConnectionError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

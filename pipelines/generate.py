@@ -17,6 +17,7 @@ from common import add_common_args, explain_relative_out, make_runner, named_ove
 
 from roken.config import ConfigError, load_config
 from roken.data.build import build_dataset, parse_shard
+from roken.data.generation import check
 from roken.data.store import StoreError
 from roken.world.loaders import MapError
 
@@ -43,6 +44,7 @@ def main(argv=None) -> int:
     try:
         cfg = load_config(args.config, overrides(args))
         shard = parse_shard(args.shard)
+        check(cfg.dataset)  # before a Ray cluster starts or anything is written
         explain_relative_out(args.out)
         runner = make_runner(args)
         manifest = build_dataset(cfg, args.out, runner, shard)

@@ -47,6 +47,10 @@ class DatasetConfig:
 
 
 def check(dc: DatasetConfig) -> None:
+    if dc.num_maps is not None and dc.num_maps < 1:
+        raise ValueError(f"--num-maps {dc.num_maps}: must be >= 1; omit it to use every map of the split")
+    if dc.seed < 0:
+        raise ValueError(f"--seed {dc.seed}: must be >= 0")
     if dc.episodes_per_map < 1 or dc.maps_per_unit < 1:
         raise ValueError("dataset.episodes_per_map and dataset.maps_per_unit must be >= 1")
     if not dc.team_sizes or any(n < 1 or w < 0 for n, w in dc.team_sizes.items()) \

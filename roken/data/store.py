@@ -69,8 +69,20 @@ def atomic_write_table(table: pa.Table, path: str | Path, kind: str, extra_meta:
     return fs.write_atomic(path, table_bytes(table, kind, extra_meta))
 
 
+def strict_json(obj):
+    """obj with every NaN / infinity replaced by None: strict JSON parsers reject NaN, so it is written null."""
+    if isinstance(obj, dict):
+        return {k: strict_json(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [strict_json(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if np.isfinite(obj) else None
+    return obj
+
+
 def atomic_write_json(obj: dict, path: str | Path) -> str:
-    return fs.write_atomic(path, (json.dumps(obj, indent=2, default=_json_default) + "\n").encode())
+    text = json.dumps(strict_json(obj), indent=2, default=_json_default, allow_nan=False)
+    return fs.write_atomic(path, (text + "\n").encode())
 
 
 def read_json(path: str | Path) -> dict:
@@ -219,7 +231,9 @@ def check_manifest(folder: str | Path, episodes: list[dict]) -> str:
     shard missing from the list. Returns a one-line description; raises StoreError on a mismatch."""
     path = fs.join(folder, "manifest.json")
     if not fs.exists(path):
-        return "no manifest"
+        if fs.exists(fs.join(folder, "metrics.json")):
+            return "evaluation folder (metrics.json; evaluations have no manifest)"
+        return "no manifest.json: not a dataset written by pipelines/generate.py (a dataset has one)"
     m = read_json(path)
     if "shards" not in m:
         return f"manifest status {m.get('status')!r} (run not finished: re-run its command)"

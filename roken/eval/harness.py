@@ -20,7 +20,7 @@ import numpy as np
 from ..configtools import from_dict, to_dict
 from ..data import fs
 from ..data.store import (StoreError, atomic_write_json, atomic_write_table, episode_record, episodes_table,
-                          file_metadata, maps_table, read_episodes)
+                          file_metadata, maps_table, read_episodes, read_json)
 from ..expert.laplacian import ExpertConfig, LaplacianExpert
 from ..progress import Progress
 from ..units import InProcessRunner, Unit
@@ -68,6 +68,44 @@ def load_maps(cfg) -> tuple[list[GridMap], list[dict]]:
         if k:
             m.map_id = f"{m.map_id}-{k}"
     return maps, bad
+
+
+def check(ec: EvalConfig) -> None:
+    """Flags and fields checked before anything is written, naming the flag and the valid range."""
+    if ec.planner not in PLANNERS:
+        raise ValueError(f"--planner {ec.planner!r}: unknown; available: {', '.join(PLANNERS)}")
+    if not ec.robots or min(ec.robots) < 1:
+        raise ValueError(f"--robots {','.join(map(str, ec.robots)) or '(empty)'}: team sizes must be >= 1, "
+                         f"e.g. --robots 4 or --robots 2,4,8")
+    if ec.episodes < 1:
+        raise ValueError(f"--episodes {ec.episodes}: must be >= 1 (episodes per team size)")
+    if ec.num_maps is not None and ec.num_maps < 1:
+        raise ValueError(f"--num-maps {ec.num_maps}: must be >= 1; omit it to use every map")
+    if ec.seed < 0:
+        raise ValueError(f"--seed {ec.seed}: must be >= 0")
+    if ec.unit_episodes < 1:
+        raise ValueError(f"eval.unit_episodes={ec.unit_episodes}: must be >= 1")
+
+
+def _refuse_other_config(out: str, cfg) -> None:
+    """An evaluation folder made with another config is not overwritten silently (as generate.py refuses);
+    other team sizes may be added to it."""
+    from ..data.build import _changed_keys
+
+    path = fs.join(out, "metrics.json")
+    if not fs.exists(path):
+        return
+    try:
+        old = read_json(path).get("config", {})
+    except (OSError, ValueError):
+        return
+    new = json.loads(json.dumps(to_dict(cfg), default=str))
+    keys = ("map", "task", "expert", "eval")
+    changed = [c for c in _changed_keys({k: old.get(k) for k in keys}, {k: new[k] for k in keys})
+               if not c.startswith("eval.robots")]
+    if changed:
+        raise StoreError(f"{out} holds an evaluation made with a different config ({'; '.join(changed[:6])}); "
+                         f"nothing was written. Use a new --out, or --overwrite to replace it")
 
 
 def fingerprint(cfg, n: int) -> str:
@@ -137,17 +175,16 @@ def _reuse(path: str, fp: str, n: int):
     return None
 
 
-def evaluate(cfg, out: str | Path, runner=None) -> dict:
+def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict:
     """Run the evaluation described by `cfg` into folder or URI `out`; returns the metrics dict.
 
     Episodes are cut into units of `eval.unit_episodes` per team size; `runner` (default: in-process) runs
     them, so --workers 0 and any number of Ray workers give identical episodes."""
-    if cfg.eval.planner not in PLANNERS:
-        raise ValueError(f"unknown planner {cfg.eval.planner!r}; available: {', '.join(PLANNERS)}")
-    if cfg.eval.unit_episodes < 1:
-        raise ValueError("eval.unit_episodes must be >= 1")
-    runner = runner or InProcessRunner()
+    check(cfg.eval)
     out = str(out)
+    if not overwrite:
+        _refuse_other_config(out, cfg)
+    runner = runner or InProcessRunner()
     t0 = time.perf_counter()
     maps, bad = load_maps(cfg)
     for b in bad:

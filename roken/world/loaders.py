@@ -70,8 +70,10 @@ def read_image(path: Path) -> np.ndarray:
 def read_npy(path: Path) -> np.ndarray:
     try:
         arr = np.load(path, allow_pickle=False)
-    except (ValueError, OSError) as e:
-        raise MapError(path, f"unreadable .npy ({e})") from None
+    except (ValueError, OSError, EOFError) as e:
+        # numpy's own message about allow_pickle would suggest turning it on; never: it runs code from the file
+        why = "not a valid .npy array file" if "pickle" in str(e) or "magic" in str(e).lower() else str(e)
+        raise MapError(path, f"unreadable .npy ({why}); save a 2-D 0/1 array with numpy.save") from None
     if arr.ndim != 2:
         raise MapError(path, f"expected a 2-D occupancy grid, got shape {arr.shape}")
     if arr.dtype != bool:
