@@ -16,7 +16,7 @@ import sys
 from common import add_common_args, explain_relative_out, make_runner, named_overrides
 
 from roken.config import ConfigError, load_config
-from roken.data.build import build_dataset, parse_shard
+from roken.data.build import Interrupted, build_dataset, parse_shard
 from roken.data.generation import check
 from roken.data.store import StoreError
 from roken.world.loaders import MapError
@@ -48,6 +48,12 @@ def main(argv=None) -> int:
         explain_relative_out(args.out)
         runner = make_runner(args)
         manifest = build_dataset(cfg, args.out, runner, shard)
+    except Interrupted as e:
+        print(f"[generate] {e}", file=sys.stderr)
+        return 130
+    except KeyboardInterrupt:
+        print("[generate] interrupted while starting; re-run the same command", file=sys.stderr)
+        return 130
     except (ConfigError, StoreError, MapError, ValueError, OSError, ConnectionError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -12,6 +12,8 @@ from .config import ConfigError
 def cmd_plot(args) -> int:
     from .data.store import read_run
     from .eval.plot import plot_episode
+    from .world.metrics import failure_reason
+    from .world.tasks import TaskConfig
 
     maps, episodes = read_run(args.run)
     if args.episode:
@@ -21,10 +23,21 @@ def cmd_plot(args) -> int:
             print(f"error: no episode {args.episode!r} in {args.run} (for example: {ids})", file=sys.stderr)
             return 2
     else:
+        if not 0 <= args.index < len(episodes):
+            print(f"error: --index {args.index}: {args.run} holds {len(episodes)} episodes; use 0..{len(episodes) - 1} "
+                  f"or --episode ID", file=sys.stderr)
+            return 2
         chosen = [episodes[args.index]]
     e = chosen[0]
+    if not 1 <= args.instants <= len(e["positions"]):
+        print(f"error: --instants {args.instants}: use 1..{len(e['positions'])} (the episode's steps + 1)",
+              file=sys.stderr)
+        return 2
+    gm = maps[e["map_id"]]
+    why = "" if e["success"] else "\nfailed: " + (failure_reason(e["positions"], gm, e["goal"], e["leader"],
+                                                                  TaskConfig()) or "?")
     title = (f"{e['episode_id']}\nsuccess={e['success']} reach={e['reach']} obs-coll={e['obstacle_collision']} "
-             f"inter-coll={e['inter_collision']} connected={e['connectivity']}")
+             f"inter-coll={e['inter_collision']} connected={e['connectivity']}{why}")
     out = plot_episode(maps[e["map_id"]].occupancy, e["positions"], e["goal"], e["leader"], args.out,
                        instants=args.instants, title=title, crop=not args.full)
     print(out)

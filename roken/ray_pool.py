@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import secrets
+import socket
 import sys
 import time
 from collections import deque
@@ -20,7 +21,7 @@ from typing import Iterable, Iterator
 os.environ.setdefault("RAY_AUTH_MODE", "token")
 
 import ray  # noqa: E402
-from ray.exceptions import (GetTimeoutError, ObjectLostError, OutOfMemoryError, RayActorError,
+from ray.exceptions import (AuthenticationError, GetTimeoutError, ObjectLostError, OutOfMemoryError, RayActorError,
                             WorkerCrashedError)
 
 from .units import Unit, UnitResult, call_unit, in_ray_job, resolve_function, worker_name  # noqa: E402
@@ -57,13 +58,39 @@ def connect(address: str | None = None, local: bool = False, num_cpus: int | Non
         ray.init(address="local", num_cpus=num_cpus or os.cpu_count(), **extra, **kwargs)
     else:
         target = address or os.environ.get("RAY_ADDRESS") or "auto"
+        _check_reachable(target)
+        if not _has_token():
+            raise ConnectionError(
+                f"no Ray authentication token for the cluster at {target!r}: token authentication is on "
+                f"(RAY_AUTH_MODE=token); put the cluster's token in ~/.ray/auth_token or RAY_AUTH_TOKEN")
         try:
             ray.init(address=target, **kwargs)
+        except AuthenticationError as e:
+            raise ConnectionError(f"the Ray cluster at {target!r} refused this machine's token ({e}); use the "
+                                  f"token the cluster was started with (RAY_AUTH_TOKEN or ~/.ray/auth_token)") from None
         except ConnectionError as e:
+            if target != "auto" and "://" not in target:  # it answered _check_reachable: it is the handshake
+                raise ConnectionError(
+                    f"something answers at {target} but Ray could not join it ({e}): most often this machine's "
+                    f"token is not the cluster's (RAY_AUTH_TOKEN or ~/.ray/auth_token; the GCS log says "
+                    f"InvalidAuthToken), or {target} is not the cluster's GCS port") from None
             raise ConnectionError(
                 f"no Ray cluster at {target!r} ({e}). Start one with cluster/start-head.sh, pass "
                 f"--address HOST:PORT, or use --local for a cluster on this machine") from None
     return ray.cluster_resources()
+
+
+def _check_reachable(target: str) -> None:
+    """A HOST:PORT address where nothing listens is named as such, before Ray's own (token) errors."""
+    if target == "auto" or "://" in target or ":" not in target:
+        return
+    host, _, port = target.rpartition(":")
+    try:
+        socket.create_connection((host, int(port)), timeout=3).close()
+    except (OSError, ValueError):
+        raise ConnectionError(f"no Ray cluster answers at {target} (nothing accepts connections there). Start one "
+                              f"with cluster/start-head.sh, check --address HOST:PORT (the GCS port, 6379 by "
+                              f"default), or use --local for a cluster on this machine") from None
 
 
 def _has_token() -> bool:

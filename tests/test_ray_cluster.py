@@ -93,6 +93,20 @@ def test_job_submit_pretrains_with_two_ddp_workers(head, tmp_path, expert_datase
     assert cfg["world_size"] == 2 and "runtime_resources" in cfg["code_version"]["path"]
 
 
+def test_wrong_or_missing_token_and_no_cluster_are_named(head, tmp_path):
+    args = ["--maps", "train", "--num-maps", "1", "--out", str(tmp_path / "ds")]
+    wrong = {k: v for k, v in head.items() if k != "RAY_AUTH_TOKEN_PATH"} | {"RAY_AUTH_TOKEN": "0" * 64}
+    r = pipeline("generate.py", args + ["--address", head["GCS"]], wrong)
+    assert r.returncode == 2 and "token is not the cluster's" in r.stderr.splitlines()[-1], r.stderr[-2000:]
+    none = {k: v for k, v in head.items() if k not in ("RAY_AUTH_TOKEN_PATH", "RAY_AUTH_TOKEN")} | {
+        "HOME": str(tmp_path)}
+    r = pipeline("generate.py", args + ["--address", head["GCS"]], none)
+    assert r.returncode == 2 and "no Ray authentication token" in r.stderr, r.stderr[-2000:]
+    r = pipeline("generate.py", args + ["--address", "127.0.0.1:1"], head)
+    assert r.returncode == 2 and "no Ray cluster answers at 127.0.0.1:1" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "ds").exists()
+
+
 def test_worker_killed_mid_run_is_retried(head, tmp_path):
     ref = tmp_path / "ref"
     args = ["--maps", "train", "--num-maps", "10", "--episodes-per-map", "3", "--set", "dataset.maps_per_unit=1",

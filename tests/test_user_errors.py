@@ -61,3 +61,58 @@ def test_text_renamed_npy_is_not_an_array(tmp_path):
     with pytest.raises(MapError, match="not a valid .npy array file") as e:
         read_npy(f)
     assert "allow_pickle" not in str(e.value)
+
+
+def test_plot_checks_its_flags_and_says_why_an_episode_failed(expert_dataset, tmp_path):
+    from roken.world.grid import GridMap
+    from roken.world.metrics import failure_reason
+    from roken.world.tasks import TaskConfig
+
+    def plot(*args):
+        return subprocess.run([sys.executable, "-m", "roken", "plot", expert_dataset, *args], capture_output=True,
+                              text=True, timeout=120)
+    for args, msg in [(["--index", "99999"], "--index 99999"), (["--index", "-1"], "--index -1"),
+                      (["--instants", "99999"], "--instants 99999"), (["--instants", "0"], "--instants 0")]:
+        r = plot(*args, "--out", str(tmp_path / "p.png"))
+        assert r.returncode == 2 and msg in r.stderr and not (tmp_path / "p.png").exists(), r.stderr
+    r = plot("--out", str(tmp_path / "no" / "dir" / "p.png"))
+    assert r.returncode == 2 and "does not exist" in r.stderr and not (tmp_path / "no").exists()
+    assert plot("--out", str(tmp_path / "p.png")).returncode == 0 and (tmp_path / "p.png").stat().st_size > 0
+
+    occ = np.zeros((40, 40), np.uint8)
+    occ[0, :] = occ[-1, :] = occ[:, 0] = occ[:, -1] = 1
+    gm, cfg = GridMap("m", occ), TaskConfig()
+    walk = np.stack([np.stack([[5.0 + 0.5 * t, 10.0], [5.0 + 0.5 * t, 14.0]]) for t in range(20)])
+    assert failure_reason(walk, gm, np.array([30.0, 10.0]), 0, cfg).startswith("time-out after 19 steps")
+    assert failure_reason(walk, gm, np.array([14.5, 10.0]), 0, cfg) is None
+    crash = walk.copy()
+    crash[7:, 1] = [crash[7, 0, 0] + 1.0, 10.0]
+    assert failure_reason(crash, gm, np.array([30.0, 10.0]), 0, cfg) == "inter-robot collision at step 7 (robots 0, 1)"
+    wall = walk.copy()
+    wall[5:, 1, 1] = 1.5
+    assert failure_reason(wall, gm, np.array([30.0, 10.0]), 0, cfg) == "obstacle collision at step 5 (robot 1)"
+    far = walk.copy()
+    far[9:, 1, 1] = 30.0
+    assert failure_reason(far, gm, np.array([30.0, 10.0]), 0, cfg) == "disconnected at step 9"
+
+
+def test_ctrl_c_during_generate_records_the_state_and_resumes(tmp_path):
+    import signal
+    import time
+
+    out = tmp_path / "ds"
+    cmd = [sys.executable, str(ROOT / "pipelines" / "generate.py"), "--maps", "train", "--num-maps", "8",
+           "--episodes-per-map", "2", "--workers", "0", "--set", "dataset.maps_per_unit=1",
+           "--set", "dataset.team_sizes={2: 1}", "--out", str(out)]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while not list((out / "episodes").glob("unit-*.parquet")) and time.time() < deadline:
+        time.sleep(0.1)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 130 and "Traceback" not in err, err
+    assert "units written" in err and "re-run the same command to resume" in err
+    m = json.loads((out / "manifest.json").read_text())
+    assert m["status"] == "interrupted" and m["shards"]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and json.loads((out / "manifest.json").read_text())["status"] == "complete"

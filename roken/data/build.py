@@ -137,6 +137,7 @@ def build_dataset(cfg, out: str, runner, shard: tuple[int, int] | None = None) -
     failures, worker_s, episodes_run = [], 0.0, 0
     bar = Progress(sum(u.size for u in todo), "[generate]", unit="ep")
     ctx = {"config": to_dict(cfg), "out": out, "fingerprint": fp}
+    interrupted = False
     try:
         for r in runner.imap_unordered(WORKER_FN, ctx, todo):
             if r.ok:
@@ -148,14 +149,25 @@ def build_dataset(cfg, out: str, runner, shard: tuple[int, int] | None = None) -
                 print(f"[generate] unit {r.unit.key} failed after {r.attempts} attempt(s): {r.error}",
                       file=sys.stderr)
             bar.update(r.unit.size)
+    except KeyboardInterrupt:  # Ctrl-C: record what is finished; finished shards are kept for the resume
+        interrupted = True
     finally:
         runner.shutdown()
     total_s = time.perf_counter() - t0
-    return _finish(cfg, out, manifest, plans, summaries, failures, runner, total_s, worker_s, episodes_run,
-                   len(todo))
+    manifest = _finish(cfg, out, manifest, plans, summaries, failures, runner, total_s, worker_s, episodes_run,
+                       len(todo), interrupted)
+    if interrupted:
+        raise Interrupted(f"interrupted; {len(summaries)} of {len(plans)} units written to {out}; re-run the same "
+                          f"command to resume")
+    return manifest
 
 
-def _finish(cfg, out, manifest, plans, summaries, failures, runner, total_s, worker_s, episodes_run, n_run):
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C during a build, after the manifest recorded the state (status `interrupted`)."""
+
+
+def _finish(cfg, out, manifest, plans, summaries, failures, runner, total_s, worker_s, episodes_run, n_run,
+            interrupted: bool = False):
     by_n: dict[str, list[int]] = {}
     shards, bad_maps, skipped = [], [], []
     missing = 0
@@ -178,7 +190,8 @@ def _finish(cfg, out, manifest, plans, summaries, failures, runner, total_s, wor
              "episodes_run": episodes_run}
     episodes = sum(s["rows"] for s in shards)
     manifest |= {
-        "status": "complete" if not failures and not missing else "incomplete", "units_missing": missing,
+        "status": "interrupted" if interrupted else "complete" if not failures and not missing else "incomplete",
+        "units_missing": missing,
         "shards": shards, "episodes": episodes, "maps": sum(s["map_rows"] for s in shards),
         "by_team_size": {n: {"attempted": a, "success": s, "kept": k, "success_rate": s / max(a, 1)}
                          for n, (a, s, k) in sorted(by_n.items(), key=lambda kv: int(kv[0]))},

@@ -17,7 +17,7 @@ def plot_episode(occupancy: np.ndarray, positions: np.ndarray, goal: np.ndarray,
 
     p = np.asarray(positions, dtype=np.float64)
     T1, N, _ = p.shape
-    fig, ax = plt.subplots(figsize=(7, 7), dpi=110)
+    fig, ax = plt.subplots(figsize=(9, 7), dpi=110)
     H, W = occupancy.shape
     ax.imshow(occupancy, cmap="Greys", vmin=0, vmax=1.6, origin="upper", extent=(0, W, H, 0),
               interpolation="nearest")
@@ -30,6 +30,13 @@ def plot_episode(occupancy: np.ndarray, positions: np.ndarray, goal: np.ndarray,
                 if np.linalg.norm(p[t, i] - p[t, j]) <= comm_radius:
                     ax.plot(p[t, [i, j], 0], p[t, [i, j], 1], "-", color=(0.2, 0.6, 0.2, shade), lw=1.0)
         ax.scatter(p[t, :, 0], p[t, :, 1], s=14, c=colors, alpha=shade, zorder=3)
+    labels: list[tuple[np.ndarray, list[int]]] = []  # instants whose leader positions coincide share one label
+    for t in ts:
+        near = [lab for lab in labels if np.linalg.norm(lab[0] - p[t, leader]) < 3.0]
+        (near[0][1].append(t) if near else labels.append((p[t, leader], [t])))
+    for xy, group in labels:
+        ax.annotate("t=" + ",".join(map(str, group)), xy, textcoords="offset points", xytext=(4, 4), fontsize=7,
+                    zorder=6)
     for i in range(N):
         lw = 2.2 if i == leader else 1.2
         ax.plot(p[:, i, 0], p[:, i, 1], "-", color=colors[i], lw=lw, label=f"robot {i}" + (" (leader)" if i == leader else ""))
@@ -45,9 +52,16 @@ def plot_episode(occupancy: np.ndarray, positions: np.ndarray, goal: np.ndarray,
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_title(title or f"{N} robots, {T1 - 1} steps")
-    ax.legend(loc="upper right", fontsize=7, framealpha=0.8)
+    from matplotlib.lines import Line2D
+
+    extra = [Line2D([], [], marker="o", ls="", mfc="none", mec="k", label="start"),
+             Line2D([], [], marker=".", ls="", color="grey", label=f"positions at the instants t (step)"),
+             Line2D([], [], color=(0.2, 0.6, 0.2), label=f"communication edge (<= {comm_radius:g} m) at t")]
+    handles, _ = ax.get_legend_handles_labels()
+    ax.legend(handles=handles + extra, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=7, framealpha=0.8)
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    if not out.parent.is_dir():
+        raise ValueError(f"--out {out}: folder {out.parent} does not exist; create it first")
     fig.tight_layout()
     fig.savefig(out)
     plt.close(fig)

@@ -57,3 +57,30 @@ def episode_metrics(positions: np.ndarray, gm: GridMap, goal: np.ndarray, leader
         astar_length = octile_length(gm.occupancy == 0, p[0, leader], goal, gm.free_graph)
     success = reach and not obstacle and not inter and conn
     return EpisodeMetrics(success, reach, obstacle, inter, conn, travelled, float(astar_length))
+
+
+def failure_reason(positions: np.ndarray, gm: GridMap, goal: np.ndarray, leader: int, cfg: TaskConfig) -> str | None:
+    """Why an episode failed, at the first step it did (None for a full success): the first obstacle collision,
+    inter-robot collision or disconnection, else a time-out (the goal never reached)."""
+    p = np.asarray(positions, dtype=np.float64)
+    T1, N, _ = p.shape
+    events = []
+    clear = clearance(gm.padded, p)  # (T+1, N)
+    hit = np.argwhere(clear < cfg.d_obs_min)
+    if len(hit):
+        events.append((int(hit[0, 0]), f"obstacle collision at step {hit[0, 0]} (robot {hit[0, 1]})"))
+    if N > 1:
+        dist = np.linalg.norm(p[:, :, None] - p[:, None], axis=-1)
+        iu = np.triu_indices(N, 1)
+        close = np.argwhere(dist[:, iu[0], iu[1]] < cfg.d_coll_min)
+        if len(close):
+            t, k = close[0]
+            events.append((int(t), f"inter-robot collision at step {t} (robots {iu[0][k]}, {iu[1][k]})"))
+        apart = np.flatnonzero(~connected(dist, cfg.comm_radius))
+        if len(apart):
+            events.append((int(apart[0]), f"disconnected at step {apart[0]}"))
+    if events:
+        return min(events)[1]
+    if not (np.linalg.norm(p[:, leader] - goal, axis=-1) <= cfg.eps_goal).any():
+        return f"time-out after {T1 - 1} steps (goal not reached)"
+    return None
