@@ -1,7 +1,8 @@
 """Pretrain the Roken DiT on an expert dataset: in-process, or Ray Train (DDP) on a laptop or a cluster.
 
     python pipelines/pretrain.py --data data/train --out runs/pre --config configs/pretrain/laptop.yaml --workers 0
-    python pipelines/pretrain.py --data data/train --out $PWD/runs/pre --config configs/pretrain/mixed.yaml --local --workers 2
+    python pipelines/pretrain.py --data data/train --out $PWD/runs/pre --config configs/pretrain/mixed.yaml \
+        --local --workers 2
     ray job submit --runtime-env cluster/runtime_env.yaml --working-dir . -- \\
         python pipelines/pretrain.py --data /shared/train --out /shared/runs/mixed \\
         --config configs/pretrain/mixed.yaml --workers 4 --gpus-per-worker 1

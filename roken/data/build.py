@@ -131,7 +131,12 @@ def build_dataset(cfg, out: str, runner, shard: tuple[int, int] | None = None) -
     atomic_write_json(manifest, fs.join(out, "manifest.json"))
     if shard is not None:
         print(f"[generate] shard {shard[0]}/{shard[1]}: units u with u % {shard[1]} == {shard[0]}", file=sys.stderr)
-    print(f"[generate] {len(plans)} units of {cfg.dataset.maps_per_unit} maps x {cfg.dataset.episodes_per_map} "
+    if 0 < len(todo) < runner.workers:
+        print(f"[generate] note: {len(todo)} unit{'s' * (len(todo) != 1)} for {runner.workers} workers: only "
+              f"{len(todo)} will work (a unit is dataset.maps_per_unit={cfg.dataset.maps_per_unit} maps; lower it "
+              f"to spread a small run)", file=sys.stderr)
+    print(f"[generate] {len(plans)} unit{'s' * (len(plans) != 1)} of {cfg.dataset.maps_per_unit} maps x "
+          f"{cfg.dataset.episodes_per_map} "
           f"episodes -> {out}: {len(summaries)} finished earlier, {len(todo)} to run on "
           f"{runner.describe() if runner.workers == 0 else f'{runner.workers} Ray workers'}", file=sys.stderr)
     failures, worker_s, episodes_run = [], 0.0, 0

@@ -128,7 +128,8 @@ class GenerationSections:
 def generate_unit(ctx: dict, payload: dict, cache: dict) -> dict:
     """Worker function (roken.units): run one unit, write its two shards, return its small summary."""
     if "cfg" not in cache:
-        cache["cfg"] = from_dict(GenerationSections, {k: ctx["config"][k] for k in ("map", "task", "expert", "dataset")})
+        sections = ("map", "task", "expert", "dataset")
+        cache["cfg"] = from_dict(GenerationSections, {k: ctx["config"][k] for k in sections})
     cfg = cache["cfg"]
     dc = cfg.dataset
     key, out = payload["key"], ctx["out"]

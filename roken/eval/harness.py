@@ -234,6 +234,8 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
         skipped_all[str(n)] = skipped
         all_rows += rows
         table_rows.append((f"{cfg.eval.planner}@{n}", summary))
+    if len(cfg.eval.robots) > 1:
+        table_rows.append((f"{cfg.eval.planner}@all", summarize(all_rows)))
     metrics = summarize(all_rows) | {
         "planner": cfg.eval.planner, "by_team_size": per_n, "skipped_episodes": skipped_all,
         "bad_maps": bad, "failures": failures, "maps": len(maps),

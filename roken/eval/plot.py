@@ -39,7 +39,8 @@ def plot_episode(occupancy: np.ndarray, positions: np.ndarray, goal: np.ndarray,
                     zorder=6)
     for i in range(N):
         lw = 2.2 if i == leader else 1.2
-        ax.plot(p[:, i, 0], p[:, i, 1], "-", color=colors[i], lw=lw, label=f"robot {i}" + (" (leader)" if i == leader else ""))
+        name = f"robot {i}" + (" (leader)" if i == leader else "")
+        ax.plot(p[:, i, 0], p[:, i, 1], "-", color=colors[i], lw=lw, label=name)
         ax.scatter(*p[0, i], marker="o", s=60, facecolors="none", edgecolors=[colors[i]], lw=1.5, zorder=4)
     ax.scatter(*goal, marker="*", s=260, c="red", edgecolors="k", zorder=5, label="goal")
     ax.add_patch(plt.Circle(goal, 1.0, fill=False, color="red", lw=1))

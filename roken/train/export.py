@@ -39,6 +39,10 @@ def model_card(cfg: dict, src: Path, params: int, notes: str) -> str:
             rows.append(f"| {name} | " + " | ".join(f"{v[f'val/{name}/{k}']:.3f}" for k in CHUNK_METRICS) + " |")
     table = "\n".join([f"| chunk | {' | '.join(CHUNK_METRICS)} |", "|" + " --- |" * (len(CHUNK_METRICS) + 1), *rows])
     code = cfg.get("code_version", {})
+    keys = ("condition_prob", "subteam_prob", "final_goal_prob", "team_size_weights")
+    samples = json.dumps({k: cfg["samples"][k] for k in keys})
+    data = (f"`{d.get('location')}` (fingerprint {d.get('fingerprint')}, {d.get('episodes')} episodes on "
+            f"{d.get('maps')} maps)")
     return f"""# Roken DiT checkpoint
 
 - Architecture: width {m['width']}, {m['depth']} decoder layers, {m['heads']} heads, MLP {m['mlp_hidden']},
@@ -46,8 +50,8 @@ def model_card(cfg: dict, src: Path, params: int, notes: str) -> str:
   (EMA of the training weights), loaded in fp32 by `roken.train.checkpoint.load`.
 - Trained from `{src}` at step {cfg['step']}: global batch {t['batch_size']}, AdamW lr {t['lr']}, {t['schedule']}
   schedule, EMA {t['ema_decay']}, seed {t['seed']}; loss {json.dumps(cfg['loss'])}.
-- Samples: {json.dumps({k: cfg['samples'][k] for k in ('condition_prob', 'subteam_prob', 'final_goal_prob', 'team_size_weights')})}.
-- Data: `{d.get('location')}` (fingerprint {d.get('fingerprint')}, {d.get('episodes')} episodes on {d.get('maps')} maps).
+- Samples: {samples}.
+- Data: {data}.
 - Code: roken {code.get('roken')}, git {code.get('git')}.
 
 ## Validation (held-out prompts, DDIM-{t.get('ddim_steps', 10)}, one chunk each)
