@@ -14,6 +14,7 @@ import torch
 from safetensors.torch import load_file
 
 from roken.config import load_config
+from roken.data.loader import collate
 from roken.data.samples import EpisodeBank, SampleConfig, make_sample
 from roken.train import checkpoint as ckpt
 from roken.train.data import SampleStream, StepIndices
@@ -39,8 +40,7 @@ def test_loop_overfits_a_few_samples(expert_dataset, tmp_path):
                       expert_dataset, tmp_path)
     run._build()
     stream = SampleStream(run.train_bank, run.spec.samples, seed=0)
-    batch = {k: torch.as_tensor(v) for k, v in
-             __import__("roken.data.loader", fromlist=["collate"]).collate([stream[g] for g in range(4)]).items()}
+    batch = collate([stream[g] for g in range(4)])
     torch.manual_seed(0)
     first = [float(run.train_step(batch)["losses/traj"]) for _ in range(5)]
     for _ in range(250):
@@ -216,3 +216,26 @@ def test_recipes_load_and_are_consistent(recipe):
     if recipe.startswith("four"):
         assert cfg.samples.team_size_weights == {4: 1.0}
     assert (cfg.samples.subteam_prob > 0) == (recipe == "four-masked.yaml")
+
+
+def test_the_shipped_model_loads_and_plans():
+    shipped = ROOT / "models" / "roken-small-mixed"
+    loaded = ckpt.load(shipped, task_max_step=0.5)
+    assert (shipped / "MODEL_CARD.md").is_file() and (shipped / "model.safetensors").stat().st_size < 10e6
+    from roken.model.diffusion import COND_KEYS, ddim_sample, make_prompt
+    from roken.data.samples import sample_shapes
+
+    cfg = load_config(None, [])
+    occ = np.zeros((140, 140), np.float32)
+    occ[:, :20] = 1
+    sample = {k: np.zeros(shape, dtype) for k, (shape, dtype) in sample_shapes(cfg.samples).items()}
+    sample["start"][:4] = [[60, 60], [66, 60], [60, 66], [66, 66]]
+    sample["robot_mask"][:4] = True
+    sample["goal_mask"][0] = 1
+    sample["rel_goal"][0] = np.array([60.0, 0.0]) / 70.0
+    sample["map"][0] = occ
+    batch = collate([sample])
+    cond = {k: batch[k] for k in COND_KEYS + ("map",)}
+    chunk = ddim_sample(loaded.model, loaded.schedule, make_prompt(loaded.model, cond, num_candidates=4), steps=10).chunk
+    assert chunk.shape == (4, 10, 16, 2) and torch.isfinite(chunk).all()
+    assert float(chunk[:, 0, :, 0].sum(-1).mean()) > 0, "the leader heads toward its goal (+x)"
