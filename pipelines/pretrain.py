@@ -25,7 +25,7 @@ from common import ROOT, add_common_args, explain_relative_out, named_overrides,
 
 from roken.config import ConfigError, load_config
 from roken.configtools import from_dict, to_dict
-from roken.data.build import _changed_keys
+from roken.data.build import changed_keys
 from roken.data.store import StoreError
 from roken.model.dit import PRESETS, preset
 from roken.train import checkpoint as ckpt
@@ -71,8 +71,8 @@ def check_resume(out: str, cfg) -> int:
     new = to_dict(cfg)
     changed = []
     for sec in RESUME_SECTIONS:
-        changed += _changed_keys(old.get(sec, {}), json.loads(json.dumps(new[sec], default=str)), sec + ".")
-    changed += _changed_keys({k: old.get("train", {}).get(k) for k in RESUME_TRAIN_KEYS},
+        changed += changed_keys(old.get(sec, {}), json.loads(json.dumps(new[sec], default=str)), sec + ".")
+    changed += changed_keys({k: old.get("train", {}).get(k) for k in RESUME_TRAIN_KEYS},
                              {k: new["train"][k] for k in RESUME_TRAIN_KEYS}, "train.")
     if changed:
         raise StoreError(f"{out} holds a run made with a different config ({'; '.join(changed[:6])}); its "

@@ -54,18 +54,18 @@ def _check_existing(out: str, fp: str, cfg_dict: dict) -> None:
     except (OSError, ValueError):
         return
     if old.get("fingerprint") not in (None, fp):
-        changed = _changed_keys(old.get("config", {}), cfg_dict)
+        changed = changed_keys(old.get("config", {}), cfg_dict)
         raise StoreError(f"{out} holds a dataset made with a different config ({'; '.join(changed[:6]) or 'code'}); "
                          f"its shards are kept. Write to a new --out folder, or re-run with the old config to "
                          f"finish it")
 
 
-def _changed_keys(old: dict, new: dict, prefix: str = "") -> list[str]:
+def changed_keys(old: dict, new: dict, prefix: str = "") -> list[str]:
     out = []
     for k in sorted(set(old) | set(new), key=str):
         a, b = old.get(k), new.get(k)
         if isinstance(a, dict) and isinstance(b, dict):
-            out += _changed_keys(a, b, f"{prefix}{k}.")
+            out += changed_keys(a, b, f"{prefix}{k}.")
         elif json.dumps(a, sort_keys=True, default=str) != json.dumps(b, sort_keys=True, default=str):
             out.append(f"{prefix}{k}: {a} -> {b}")
     return out

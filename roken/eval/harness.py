@@ -90,7 +90,7 @@ def check(ec: EvalConfig) -> None:
 def _refuse_other_config(out: str, cfg) -> None:
     """An evaluation folder made with another config is not overwritten silently (as generate.py refuses);
     other team sizes may be added to it."""
-    from ..data.build import _changed_keys
+    from ..data.build import changed_keys
 
     path = fs.join(out, "metrics.json")
     if not fs.exists(path):
@@ -101,7 +101,7 @@ def _refuse_other_config(out: str, cfg) -> None:
         return
     new = json.loads(json.dumps(to_dict(cfg), default=str))
     keys = ("map", "task", "expert", "eval")
-    changed = [c for c in _changed_keys({k: old.get(k) for k in keys}, {k: new[k] for k in keys})
+    changed = [c for c in changed_keys({k: old.get(k) for k in keys}, {k: new[k] for k in keys})
                if not c.startswith("eval.robots")]
     if changed:
         raise StoreError(f"{out} holds an evaluation made with a different config ({'; '.join(changed[:6])}); "

@@ -62,23 +62,27 @@ def _json_default(o):
     return str(o)
 
 
-def save_atomic(run_dir: str | Path, step: int, weights: dict, config: dict, train_state: dict | None = None,
-                half: bool = False) -> Path:
-    """Write run_dir/checkpoint-{step} through a hidden temporary renamed into place: a reader never sees a
-    half-written checkpoint, and a checkpoint of the same step already there is kept, not overwritten."""
+def write_atomic(run_dir: str | Path, step: int, fill) -> Path:
+    """run_dir/checkpoint-{step}, filled by `fill(directory)` in a hidden temporary renamed into place: a reader
+    never sees a half-written checkpoint, and a checkpoint of the same step already there is kept."""
     run = Path(run_dir)
     run.mkdir(parents=True, exist_ok=True)
     final = run / checkpoint_name(step)
     if final.exists():
         return final
-    tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{checkpoint_name(step)}-", dir=run))
+    tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{final.name}-", dir=run))
     try:
-        write(tmp, weights, config, train_state, half)
+        fill(tmp)
         os.rename(tmp, final)
-    except BaseException:
+    finally:
         shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return final
+
+
+def save_atomic(run_dir: str | Path, step: int, weights: dict, config: dict, train_state: dict | None = None,
+                half: bool = False) -> Path:
+    """Write a checkpoint of these weights and config into run_dir/checkpoint-{step} (see write_atomic)."""
+    return write_atomic(run_dir, step, lambda d: write(d, weights, config, train_state, half))
 
 
 def remove_temporaries(run_dir: str | Path) -> None:

@@ -12,8 +12,6 @@ from __future__ import annotations
 import copy
 import math
 import random
-import shutil
-import tempfile
 import time
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
@@ -120,18 +118,9 @@ class LocalBackend:
 
     def report(self, step: int, metrics: dict, write=None, keep: int = 3) -> None:
         """`write(directory)` fills a checkpoint; it goes to run_dir/checkpoint-{step} atomically."""
-        if write is None:
-            return
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        final = self.run_dir / ckpt.checkpoint_name(step)
-        tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{final.name}-", dir=self.run_dir))
-        try:
-            write(tmp)
-            if not final.exists():  # never overwrite a checkpoint
-                tmp.rename(final)
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
-        ckpt.prune(self.run_dir, keep, "val/losses/traj")
+        if write is not None:
+            ckpt.write_atomic(self.run_dir, step, write)
+            ckpt.prune(self.run_dir, keep, "val/losses/traj")
 
 
 class Pretraining:
@@ -245,7 +234,7 @@ class Pretraining:
         loader = make_loader(stream, start, t.steps, t.batch_size, self.rank, self.world, t.loader_workers,
                              pin=self.device.type == "cuda")
         last_val: dict = {}
-        sums: dict[str, float] = {}
+        sums: dict[str, torch.Tensor] = {}
         n_sums, wait, t_win, t0 = 0, 0.0, time.perf_counter(), time.perf_counter()
         it = iter(loader)
         while self.step < t.steps:
@@ -253,14 +242,14 @@ class Pretraining:
             batch = to_device(next(it), self.device)
             wait += time.perf_counter() - w0
             logs = self.train_step(batch)
-            for k, v in logs.items():
-                sums[k] = sums.get(k, 0.0) + float(v)
+            for k, v in logs.items():  # tensors: summing them does not wait for the device every step
+                sums[k] = sums.get(k, 0.0) + v
             n_sums += 1
             metrics = {}
             if self.step % t.log_every == 0 or self.step == t.steps:
                 now = time.perf_counter()
                 rate = n_sums * t.batch_size / (now - t_win)
-                metrics = {k: v / n_sums for k, v in sums.items()} | {
+                metrics = {k: float(v) / n_sums for k, v in sums.items()} | {
                     "charts/lr": self.sched.get_last_lr()[0], "charts/samples_per_s": rate,
                     "charts/data_wait_frac": wait / (now - t_win), "charts/epoch": self.step * t.batch_size /
                     len(self.train_bank)}
