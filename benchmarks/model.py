@@ -19,8 +19,9 @@ from contextlib import nullcontext
 import numpy as np
 import torch
 
-from roken.data.samples import SampleConfig, heatmap
-from roken.model.diffusion import DiffusionConfig, NoiseSchedule, ddim_sample, ddpm_sample, make_prompt
+from roken.data.condition import build_condition
+from roken.data.samples import SampleConfig
+from roken.model.diffusion import COND_KEYS, DiffusionConfig, NoiseSchedule, ddim_sample, ddpm_sample, make_prompt
 from roken.model.dit import PRESETS, RokenDiT, preset
 from roken.model.losses import LossConfig, pretraining_loss
 from roken.world.maps import MapConfig, generate_map
@@ -45,19 +46,13 @@ def timed(fn, device, repeat: int, warmup: int = 2) -> float:
 
 
 def make_cond(n: int, R: int, device, rng) -> dict:
+    """A plan's inputs for n robots on a generated map, through the one condition builder."""
     occ = generate_map(MapConfig(), "eval", 0).occupancy
     free = np.argwhere(occ == 0)
     starts = free[rng.choice(len(free), size=n, replace=False)][:, ::-1] + 0.5  # (x, y)
     goal = free[rng.integers(len(free))][::-1] + 0.5
-    m = np.stack([occ.astype(np.float32), heatmap(starts, 140, 2.0), heatmap(goal[None], 140, 2.0)])
-    cond = {"start": np.zeros((1, R, 2), np.float32), "rel_goal": np.zeros((1, R, 2), np.float32),
-            "goal_mask": np.zeros((1, R), np.float32), "traj_mask": np.zeros((1, R), np.float32),
-            "robot_mask": np.zeros((1, R), bool), "map": m[None]}
-    cond["start"][0, :n] = starts
-    cond["rel_goal"][0, 0] = (goal - starts[0]) / 70.0
-    cond["goal_mask"][0, 0] = 1
-    cond["robot_mask"][0, :n] = True
-    return {k: torch.from_numpy(v).to(device) for k, v in cond.items()}
+    cond = build_condition(occ, starts, 0, goal, SampleConfig(), tokens=R)
+    return {k: torch.from_numpy(np.asarray(cond[k])[None]).to(device) for k in COND_KEYS + ("map",)}
 
 
 def train_batch(B: int, device, rng) -> dict:

@@ -51,14 +51,21 @@ def wants_ray(args) -> bool:
     return bool(args.local or args.address or os.environ.get("RAY_ADDRESS") or (args.workers or 0) > 0)
 
 
-def make_runner(args):
-    """The runner for these flags; connects to Ray only when it is needed (imports it only then too)."""
+def make_runner(args, gpus_per_worker: float = 0):
+    """The runner for these flags; connects to Ray only when it is needed (imports it only then too).
+    gpus_per_worker -1: one GPU per actor when the cluster has GPUs (as many actors as GPUs), else none."""
     if not wants_ray(args):
         return InProcessRunner()
     from roken import ray_pool
 
     resources = ray_pool.connect(args.address, args.local, args.num_cpus, code_root=str(ROOT))
     cpus = int(resources.get("CPU", 1))
+    gpus = int(resources.get("GPU", 0))
+    if gpus_per_worker < 0:
+        gpus_per_worker = 1 if gpus else 0
+    if gpus_per_worker > 0:
+        workers = args.workers or max(1, int(gpus / gpus_per_worker))
+        return ray_pool.RayRunner(workers, num_gpus=gpus_per_worker)
     workers = args.workers or cpus
     if workers > cpus:
         print(f"note: {workers} workers on a cluster with {cpus} CPUs; the extra ones wait for free CPUs",

@@ -1,5 +1,5 @@
-"""`roken` command line: `roken plot RUN_DIR --episode ID --out FILE.png`, `roken validate RUN_DIR`,
-`roken export RUN_OR_CHECKPOINT OUT`."""
+"""`roken` command line: `roken plot RUN_DIR --episode ID --out FILE.png`, `roken animate RUN_DIR --index 0
+--out FILE.gif`, `roken validate RUN_DIR`, `roken export RUN_OR_CHECKPOINT OUT`, `roken quickstart`."""
 from __future__ import annotations
 
 import argparse
@@ -44,6 +44,30 @@ def cmd_plot(args) -> int:
     return 0
 
 
+def cmd_animate(args) -> int:
+    import numpy as np
+
+    from .data.store import read_run
+    from .eval.plot import animate_episode
+
+    maps, episodes = read_run(args.run)
+    chosen = [e for e in episodes if e["episode_id"] == args.episode] if args.episode else \
+        (episodes[args.index:args.index + 1] if 0 <= args.index < len(episodes) else [])
+    if not chosen:
+        print(f"error: no episode {args.episode or args.index!r} in {args.run} ({len(episodes)} episodes; "
+              f"e.g. {episodes[0]['episode_id'] if episodes else '-'})", file=sys.stderr)
+        return 2
+    e = chosen[0]
+    plans = None
+    if e.get("plans") is not None and e.get("plan_steps"):
+        N, P = e["num_robots"], len(e["plan_steps"])
+        plans = np.asarray(e["plans"], np.float32).reshape(P, N, -1, 2)
+    title = f"{e['episode_id']}  success={e['success']}"
+    print(animate_episode(maps[e["map_id"]].occupancy, e["positions"], e["goal"], e["leader"], args.out, plans,
+                          e.get("plan_steps"), every=args.every, title=title))
+    return 0
+
+
 def cmd_validate(args) -> int:
     from .data.store import check_manifest, read_run
 
@@ -60,7 +84,22 @@ def cmd_export(args) -> int:
     return 0
 
 
+def cmd_quickstart(rest: list[str]) -> int:
+    """Runs pipelines/quickstart.py of this checkout (the pipelines are not part of the installed package)."""
+    import subprocess
+
+    script = Path(__file__).resolve().parents[1] / "pipelines" / "quickstart.py"
+    if not script.is_file():
+        print("error: roken quickstart runs from a clone of the repository (pipelines/quickstart.py not found "
+              "next to the installed package); git clone it and pip install -e .", file=sys.stderr)
+        return 2
+    return subprocess.call([sys.executable, str(script)] + rest)
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["quickstart"]:
+        return cmd_quickstart(argv[1:])
     ap = argparse.ArgumentParser(prog="roken", description=__doc__)
     sub = ap.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("plot", help="draw one episode of a dataset / evaluation folder as a PNG")
@@ -71,6 +110,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--instants", type=int, default=4, help="instants at which communication edges are drawn")
     p.add_argument("--full", action="store_true", help="draw the whole map instead of the team's area")
     p.set_defaults(fn=cmd_plot)
+    a = sub.add_parser("animate", help="animated GIF of an episode (Roken episodes: with each re-plan's chunk)")
+    a.add_argument("run", help="folder with maps/ and episodes/")
+    a.add_argument("--episode", help="episode_id (default: --index)")
+    a.add_argument("--index", type=int, default=0, help="episode number in file order")
+    a.add_argument("--every", type=int, default=4, help="simulator steps per frame")
+    a.add_argument("--out", required=True, help="GIF to write")
+    a.set_defaults(fn=cmd_animate)
     v = sub.add_parser("validate", help="check a folder against the episode-store contract")
     v.add_argument("run")
     v.set_defaults(fn=cmd_validate)

@@ -11,6 +11,7 @@ from .expert.laplacian import ExpertConfig
 from .model.diffusion import DiffusionConfig
 from .model.dit import ModelConfig
 from .model.losses import LossConfig
+from .plan.rollout import PlanConfig
 from .train.loop import TrainConfig
 from .world.maps import MapConfig
 from .world.tasks import TaskConfig
@@ -28,6 +29,7 @@ class Config:
     diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     train: TrainConfig = field(default_factory=TrainConfig)  # pretraining (roken/train/loop.py)
+    plan: PlanConfig = field(default_factory=PlanConfig)  # Roken as a planner in closed loop (roken/plan)
 
 
 def load_config(path=None, overrides: list[str] | None = None) -> Config:

@@ -117,10 +117,11 @@ class UnitWorker:
 
 
 class RayRunner:
-    def __init__(self, workers: int, per_worker: int = 2, max_attempts: int = 3, log=None):
+    def __init__(self, workers: int, per_worker: int = 2, max_attempts: int = 3, log=None, num_gpus: float = 0):
         if workers < 1:
             raise ValueError(f"RayRunner needs workers >= 1, got {workers}")
         self.workers, self.per_worker, self.max_attempts = workers, per_worker, max_attempts
+        self.num_gpus = num_gpus  # GPU actors (Roken rollouts on a GPU cluster)
         self.log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
         self.actors: list = []
         self.retries = 0
@@ -133,7 +134,7 @@ class RayRunner:
     def _start(self, fn_ref: str, ctx: dict) -> None:
         t0 = time.perf_counter()
         self.ctx_box = [ray.put(ctx)]  # one copy in the object store, shared by every actor
-        self.actors = [UnitWorker.options(scheduling_strategy="SPREAD").remote(fn_ref)
+        self.actors = [UnitWorker.options(scheduling_strategy="SPREAD", num_gpus=self.num_gpus).remote(fn_ref)
                        for _ in range(self.workers)]
         try:
             self.names = ray.get([a.name.remote() for a in self.actors], timeout=300)

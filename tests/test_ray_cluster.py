@@ -140,17 +140,22 @@ def test_worker_killed_mid_run_is_retried(head, tmp_path):
 
 
 def test_evaluation_fans_out_with_identical_episodes(head, tmp_path):
-    args = ["--robots", "2,3", "--episodes", "6", "--set", "eval.unit_episodes=2", "--set", "expert.batch_size=4"]
+    """The expert and the shipped Roken model on the same tasks, in-process and on 2 Ray actors: identical
+    episode files (one torch thread in both, as Ray gives each 1-CPU actor)."""
+    args = ["--planner", "laplacian,roken", "--checkpoint", str(ROOT / "models" / "roken-small-mixed"),
+            "--robots", "2,3", "--episodes", "4", "--set", "eval.unit_episodes=2", "--set", "expert.batch_size=4"]
     a, b = tmp_path / "inproc", tmp_path / "ray"
-    r = pipeline("evaluate.py", args + ["--out", str(a), "--workers", "0"], head)
+    env = {**head, "OMP_NUM_THREADS": "1"}
+    r = pipeline("evaluate.py", args + ["--out", str(a), "--workers", "0"], env)
     assert r.returncode == 0, r.stderr
-    r = pipeline("evaluate.py", args + ["--out", str(b), "--address", head["GCS"]], head)
+    r = pipeline("evaluate.py", args + ["--out", str(b), "--address", head["GCS"]], env)
     assert r.returncode == 0, r.stderr
     assert "started 2 Ray worker(s)" in r.stderr
-    for f in ("n02.parquet", "n03.parquet"):
-        assert (a / "episodes" / f).read_bytes() == (b / "episodes" / f).read_bytes()
+    for f in ("n02.parquet", "n03.parquet", "roken-n02.parquet", "roken-n03.parquet"):
+        assert (a / "episodes" / f).read_bytes() == (b / "episodes" / f).read_bytes(), f
     ma, mb = (json.loads((d / "metrics.json").read_text()) for d in (a, b))
-    assert ma["full_success"] == mb["full_success"] and mb["workers"] == 2
+    assert ma["planners"] == mb["planners"] and mb["workers"] == 2 and set(ma["planners"]) == {"laplacian", "roken"}
+    assert "roken" in r.stdout and "laplacian" in r.stdout
 
 
 def test_ray_data_reads_the_same_columns(head, tmp_path):

@@ -34,6 +34,7 @@ import pyarrow as pa
 
 from ..world.geometry import signed_distance_field
 from . import shards
+from .condition import build_condition, decode_chunk, encode_chunk, heatmap  # noqa: F401  (re-exported)
 
 SAMPLE_KEYS = ("chunk", "start", "rel_goal", "goal", "goal_mask", "traj_mask", "robot_mask", "waypoints",
                "occ_small", "occ_large", "map", "sdf", "num_robots")
@@ -220,12 +221,6 @@ def _future_points(path: np.ndarray, spacing: float, count: int) -> np.ndarray:
     return np.stack([np.interp(targets, s, path[:, 0]), np.interp(targets, s, path[:, 1])], axis=-1)
 
 
-def heatmap(points: np.ndarray, size: int, sigma: float) -> np.ndarray:
-    """(S, S) max over points (n, 2) of Gaussian kernels evaluated at cell centres."""
-    c = np.arange(size, dtype=np.float32) + 0.5
-    gx = np.exp(-((c[None, :] - points[:, :1]) ** 2) / (2 * sigma ** 2))  # (n, S)
-    gy = np.exp(-((c[None, :] - points[:, 1:]) ** 2) / (2 * sigma ** 2))  # (n, S)
-    return (gy[:, :, None] * gx[:, None, :]).max(axis=0).astype(np.float32)
 
 
 def local_patches(occupancy: np.ndarray, points: np.ndarray, patch: int, scale: int) -> tuple[np.ndarray, np.ndarray]:
@@ -244,20 +239,8 @@ def local_patches(occupancy: np.ndarray, points: np.ndarray, patch: int, scale: 
     return occ_s.astype(np.float32), occ_l.astype(np.float32)
 
 
-def encode_chunk(points: np.ndarray, cfg: SampleConfig) -> np.ndarray:
-    """(H+1, N, 2) positions at t, t+interval, ... -> (N, H, 2) chunk in cfg.representation."""
-    if cfg.representation == "relative":
-        chunk = np.diff(points, axis=0) / cfg.step_scale
-    else:
-        chunk = points[1:] / cfg.pos_scale - 1.0
-    return chunk.transpose(1, 0, 2).astype(np.float32)
 
 
-def decode_chunk(chunk: np.ndarray, start: np.ndarray, cfg: SampleConfig) -> np.ndarray:
-    """(..., H, 2) chunk and (..., 2) start -> (..., H, 2) positions in metres (numpy; the model has a torch twin)."""
-    if cfg.representation == "relative":
-        return start[..., None, :] + np.cumsum(chunk, axis=-2) * cfg.step_scale
-    return (chunk + 1.0) * cfg.pos_scale
 
 
 def _subteam(start: np.ndarray, leader: int, rng: np.random.Generator, cfg: SampleConfig) -> tuple[np.ndarray, int]:
@@ -337,18 +320,13 @@ def make_sample(bank: EpisodeBank, i: int, rng: np.random.Generator, cfg: Sample
         traj_mask[rng.choice(N, size=int(rng.integers(1, N)), replace=False)] = 1.0
 
     out = {k: np.zeros(shape, dtype) for k, (shape, dtype) in sample_shapes(cfg).items()}
-    out["goal"], out["num_robots"] = goal.astype(np.float32), np.int64(N)
-    out["chunk"][:N] = encode_chunk(points, cfg)
-    out["start"][:N] = start
-    if leader >= 0:
-        out["rel_goal"][leader] = (goal - start[leader]) / cfg.pos_scale
-        out["goal_mask"][leader] = 1.0
+    # the inputs through the one condition builder (the planner and GRPO call it too); the given chunks of
+    # conditioned robots are the target chunk itself, so only the targets are filled in here
+    out.update(build_condition(occ, start, leader, goal, cfg, fixed=None))
     out["traj_mask"][:N] = traj_mask
-    out["robot_mask"][:N] = True
+    out["num_robots"] = np.int64(N)
+    out["chunk"][:N] = encode_chunk(points, cfg)
     out["waypoints"][:N] = (wps - start[:, None, :]) / cfg.waypoint_scale
     out["occ_small"][:N], out["occ_large"][:N] = occ_s, occ_l
-    out["map"][0], out["map"][1] = occ, heatmap(start, S, cfg.heatmap_sigma)
-    if leader >= 0:  # the goal is shown only to a (sub-)team that holds the leader
-        out["map"][2] = heatmap(goal[None], S, cfg.heatmap_sigma)
     out["sdf"][:] = sdf
     return out

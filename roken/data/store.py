@@ -49,6 +49,11 @@ EPISODES_SCHEMA = pa.schema([
 ])
 
 
+# Columns a planner may add (Roken): safety stops, and the chunk planned at each re-plan (for plots and GIFs):
+# plans holds len(plan_steps) * N * H * 2 values, layout [re-plan][robot][chunk move][x, y].
+OPTIONAL_EPISODE_COLUMNS = {"holds": pa.int32(), "plan_steps": pa.list_(pa.int32()), "plans": pa.list_(pa.float32())}
+
+
 class StoreError(ValueError):
     """A file that does not follow the episode-store contract, with the file and the reason."""
 
@@ -135,7 +140,8 @@ def episodes_table(rows: list[dict]) -> pa.Table:
         r["positions"] = pos.reshape(-1)
         r["goal"] = np.asarray(r["goal"], dtype=np.float32).reshape(2)
         out.append(r)
-    return pa.Table.from_pylist(out, schema=EPISODES_SCHEMA)
+    extra = [pa.field(k, t) for k, t in OPTIONAL_EPISODE_COLUMNS.items() if out and k in out[0]]
+    return pa.Table.from_pylist(out, schema=pa.schema(list(EPISODES_SCHEMA) + extra))
 
 
 def episode_record(episode_id: str, planner: str, task: Task, gm: GridMap, positions: np.ndarray,

@@ -1,10 +1,17 @@
 """One evaluation harness for every planner: maps -> tasks -> planner -> episodes -> metrics.
 
 Episode e of team size N runs on map e mod M with task seed (eval.seed, N, e): the same config always
-gives the same tasks, so planners are compared on identical episodes. Output folder:
-  maps/maps.parquet, episodes/n{N:02d}.parquet   (the store contract, roken.data.store)
-  metrics.json                                   (per team size and overall, with the resolved config)
-A team size whose episode file already exists with the same config fingerprint is reused (resume).
+gives the same tasks, so planners are compared on identical episodes. `eval.planner` is one planner or a
+list (`laplacian,roken,roken+safe`): every planner runs the same tasks and the table has a row per planner.
+Planners: `laplacian` (the expert) and Roken from `plan.checkpoint`, plain (`roken`, one candidate, the
+paper's) or with verified selection over plan.candidates (`roken+safe`, `roken+geodesic`; roken.plan.select).
+Output folder:
+  maps/maps.parquet                               (the store contract, roken.data.store)
+  episodes/n{N:02d}.parquet                       the expert's episodes
+  episodes/{planner}-n{N:02d}.parquet             any other planner's ('+' written '-'), with its re-plans
+  metrics.json                                    the first planner's metrics at the top level (as with one
+                                                  planner), every planner's under `planners`, the config
+A (planner, team size) whose episode file exists with the same config fingerprint is reused (resume).
 """
 from __future__ import annotations
 
@@ -28,14 +35,15 @@ from ..world.grid import GridMap
 from ..world.loaders import MapError, find_map_files, load_map_file
 from ..world.maps import SPLITS, MapConfig, generate_map, split_size
 from ..world.tasks import TaskConfig, TaskError, sample_task
+from ..plan.rollout import PlanConfig
 from .metrics import format_table, summarize
 
-PLANNERS = ("laplacian",)
+PLANNERS = ("laplacian", "roken", "roken+safe", "roken+geodesic")
 
 
 @dataclass
 class EvalConfig:
-    planner: str = "laplacian"
+    planner: str = "laplacian"  # one planner or a comma-separated list (PLANNERS)
     robots: list[int] = field(default_factory=lambda: [4])
     episodes: int = 200  # per team size
     maps: str = "eval"  # "train", "eval", or a folder / glob / file of external maps
@@ -70,10 +78,24 @@ def load_maps(cfg) -> tuple[list[GridMap], list[dict]]:
     return maps, bad
 
 
+def planner_names(ec: EvalConfig, pc: PlanConfig | None = None) -> list[str]:
+    """The rows of an evaluation: `roken` with plan.select set is named for its selection (roken+safe)."""
+    names = [p.strip() for p in str(ec.planner).split(",") if p.strip()]
+    if pc is not None and pc.select != "none":
+        names = [f"roken+{pc.select}" if p == "roken" else p for p in names]
+    return list(dict.fromkeys(names))
+
+
+def uses_roken(ec: EvalConfig) -> bool:
+    return any(p.startswith("roken") for p in planner_names(ec))
+
+
 def check(ec: EvalConfig) -> None:
     """Flags and fields checked before anything is written, naming the flag and the valid range."""
-    if ec.planner not in PLANNERS:
-        raise ValueError(f"--planner {ec.planner!r}: unknown; available: {', '.join(PLANNERS)}")
+    bad = [p for p in planner_names(ec) if p not in PLANNERS]
+    if bad or not planner_names(ec):
+        raise ValueError(f"--planner {ec.planner!r}: unknown {', '.join(bad) or '(empty)'}; available: "
+                         f"{', '.join(PLANNERS)} (several: --planner laplacian,roken)")
     if not ec.robots or min(ec.robots) < 1:
         raise ValueError(f"--robots {','.join(map(str, ec.robots)) or '(empty)'}: team sizes must be >= 1, "
                          f"e.g. --robots 4 or --robots 2,4,8")
@@ -102,17 +124,36 @@ def _refuse_other_config(out: str, cfg) -> None:
     new = json.loads(json.dumps(to_dict(cfg), default=str))
     keys = ("map", "task", "expert", "eval")
     changed = [c for c in changed_keys({k: old.get(k) for k in keys}, {k: new[k] for k in keys})
-               if not c.startswith("eval.robots")]
+               if not c.startswith(("eval.robots", "eval.planner"))]
     if changed:
         raise StoreError(f"{out} holds an evaluation made with a different config ({'; '.join(changed[:6])}); "
                          f"nothing was written. Use a new --out, or --overwrite to replace it")
 
 
-def fingerprint(cfg, n: int) -> str:
+def fingerprint(cfg, n: int, planner: str = "laplacian", model_id: str = "") -> str:
+    """What an episode file depends on: tasks (map, task, eval), the planner's own settings (the expert's, or
+    Roken's plan section and weights)."""
     d = to_dict(cfg)
-    d["eval"] = {k: v for k, v in d["eval"].items() if k != "robots"}
-    d = {k: v for k, v in d.items() if k in ("map", "task", "expert", "eval")}
+    d["eval"] = {k: v for k, v in d["eval"].items() if k not in ("robots", "planner")}
+    keys = ("map", "task", "expert", "eval")
+    if planner != "laplacian":
+        d["plan"] = rollout_config(cfg.plan, planner).__dict__ | {"checkpoint": model_id}
+        keys = keys + ("plan",)
+    d = {k: v for k, v in d.items() if k in keys}
     return hashlib.sha256(json.dumps([d, n], sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def rollout_config(pc: PlanConfig, planner: str) -> PlanConfig:
+    """The plan section for one row: plain `roken` uses one candidate, `roken+X` selects with X."""
+    from dataclasses import replace
+
+    select = planner.partition("+")[2] or "none"
+    return replace(pc, select=select, candidates=pc.candidates if select != "none" else 1)
+
+
+def episode_file(out: str, planner: str, n: int) -> str:
+    name = f"n{n:02d}.parquet" if planner == "laplacian" else f"{planner.replace('+', '-')}-n{n:02d}.parquet"
+    return fs.join(out, "episodes", name)
 
 
 def make_tasks(cfg, maps: list[GridMap], n: int):
@@ -127,14 +168,23 @@ def make_tasks(cfg, maps: list[GridMap], n: int):
     return tasks, skipped
 
 
-def run_planner(cfg, tasks, maps_by_id):
-    """Yield (index into tasks, positions (T+1, N, 2)) for `cfg.eval.planner`."""
-    if cfg.eval.planner == "laplacian":
+def run_planner(cfg, planner: str, tasks, maps_by_id, cache: dict, model_blob: dict | None = None):
+    """Yield (index into tasks, positions (T+1, N, 2), extra columns) for one planner."""
+    if planner == "laplacian":
         expert = LaplacianExpert(cfg.expert, cfg.task)
         for i, ep in expert.run([t for _, t in tasks], maps_by_id):
-            yield i, ep.positions
-    else:
-        raise ValueError(f"unknown planner {cfg.eval.planner!r}; available: {', '.join(PLANNERS)}")
+            yield i, ep.positions, {}
+        return
+    from ..plan import RokenPlanner, RokenRollout
+
+    if "roken" not in cache:  # each worker unpacks the weights once
+        cache["roken"] = RokenPlanner.unpack(model_blob, cfg.plan.device, cfg.plan.dtype)
+    rollout = RokenRollout(cache["roken"], rollout_config(cfg.plan, planner), cfg.task, cfg.expert)
+    for i, pos, info in rollout.run([t for _, t in tasks], maps_by_id):
+        extra = {"holds": info["holds"]}
+        if cfg.plan.record_plans:
+            extra |= {"plan_steps": info["plan_steps"], "plans": info["plans"].reshape(-1)}
+        yield i, pos, extra
 
 
 @dataclass
@@ -144,20 +194,24 @@ class EvalSections:
     task: TaskConfig = field(default_factory=TaskConfig)
     expert: ExpertConfig = field(default_factory=ExpertConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    plan: PlanConfig = field(default_factory=PlanConfig)
+
+
+SECTIONS = ("map", "task", "expert", "eval", "plan")
 
 
 def eval_unit(ctx: dict, payload: dict, cache: dict) -> list[dict]:
     """Worker function (roken.units): plan and score one unit's episodes; returns their rows."""
     if "cfg" not in cache:
-        cache["cfg"] = from_dict(EvalSections, {k: ctx["config"][k] for k in ("map", "task", "expert", "eval")})
+        cache["cfg"] = from_dict(EvalSections, {k: ctx["config"][k] for k in SECTIONS if k in ctx["config"]})
         cache["maps"] = {mid: GridMap(mid, occ, src) for mid, occ, src in ctx["maps"]}
     cfg, by_id = cache["cfg"], cache["maps"]
-    n, tasks = payload["n"], payload["tasks"]
+    n, tasks, planner = payload["n"], payload["tasks"], payload.get("planner", "laplacian")
     rows: list[dict | None] = [None] * len(tasks)
-    for i, pos in run_planner(cfg, tasks, by_id):
+    for i, pos, extra in run_planner(cfg, planner, tasks, by_id, cache, ctx.get("model")):
         e, task = tasks[i]
-        rows[i] = episode_record(f"{cfg.eval.planner}-n{n:02d}-e{e:05d}-{task.map_id}", cfg.eval.planner, task,
-                                 by_id[task.map_id], pos, cfg.task, e)
+        rows[i] = episode_record(f"{planner}-n{n:02d}-e{e:05d}-{task.map_id}", planner, task,
+                                 by_id[task.map_id], pos, cfg.task, e) | extra
     return [r for r in rows if r is not None]
 
 
@@ -175,15 +229,38 @@ def _reuse(path: str, fp: str, n: int):
     return None
 
 
+def load_model(cfg) -> tuple[dict | None, str]:
+    """The Roken checkpoint of an evaluation packed as bytes (shipped to every worker once), and its id."""
+    if not uses_roken(cfg.eval):
+        return None, ""
+    from ..plan.planner import RokenPlanner
+    from ..plan.rollout import check as check_plan
+
+    check_plan(cfg.plan)
+    if not cfg.plan.checkpoint:
+        raise ValueError("--planner roken needs --checkpoint PATH: a checkpoint directory or a run folder "
+                         "(the shipped model: --checkpoint models/roken-small-mixed)")
+    blob = RokenPlanner.pack(cfg.plan.checkpoint, cfg.plan.which, cfg.task.max_step)
+    max_robots = blob["config"]["samples"]["max_robots"]
+    if not cfg.plan.cluster_size and max(cfg.eval.robots) > max_robots:
+        raise ValueError(f"--robots {max(cfg.eval.robots)}: the model plans at most {max_robots} robots in one "
+                         f"call (samples.max_robots of {blob['path']}); add --cluster-size 4 (clustered rollout)")
+    if cfg.plan.cluster_size > max_robots:
+        raise ValueError(f"--cluster-size {cfg.plan.cluster_size}: the model has {max_robots} robot tokens")
+    return blob, hashlib.sha256(blob["weights"]).hexdigest()[:16]
+
+
 def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict:
     """Run the evaluation described by `cfg` into folder or URI `out`; returns the metrics dict.
 
-    Episodes are cut into units of `eval.unit_episodes` per team size; `runner` (default: in-process) runs
-    them, so --workers 0 and any number of Ray workers give identical episodes."""
+    Episodes are cut into units of `eval.unit_episodes` per planner and team size; `runner` (default:
+    in-process) runs them, so --workers 0 and any number of Ray workers give identical episodes."""
     check(cfg.eval)
     out = str(out)
     if not overwrite:
         _refuse_other_config(out, cfg)
+    blob, model_id = load_model(cfg)
+    planners = planner_names(cfg.eval, cfg.plan)
     runner = runner or InProcessRunner()
     t0 = time.perf_counter()
     maps, bad = load_maps(cfg)
@@ -192,53 +269,61 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
     if not maps:
         raise MapError(cfg.eval.maps, "none of the maps could be used (reasons above)")
     atomic_write_table(maps_table(maps), fs.join(out, "maps", "maps.parquet"), "maps")
-    done: dict[int, tuple[list, list]] = {}
-    units, skipped_by_n = [], {}
+    done: dict[tuple[str, int], tuple[list, list]] = {}
+    units, skipped_by_n, todo = [], {}, []
+    k = cfg.eval.unit_episodes
     for n in cfg.eval.robots:
-        reused = _reuse(fs.join(out, "episodes", f"n{n:02d}.parquet"), fingerprint(cfg, n), n)
-        if reused is not None:
-            done[n] = reused
-            continue
         tasks, skipped = make_tasks(cfg, maps, n)
         skipped_by_n[n] = skipped
         for s in skipped:
             print(f"[N={n}] skipped episode {s['episode']}: {s['reason']}", file=sys.stderr)
-        k = cfg.eval.unit_episodes
-        units += [Unit(f"n{n:02d}-u{j // k:03d}", {"n": n, "tasks": tasks[j:j + k]}, size=len(tasks[j:j + k]))
-                  for j in range(0, len(tasks), k)]
-    rows_by_n: dict[int, list] = {n: [] for n in skipped_by_n}
+        for p in planners:
+            fp = fingerprint(cfg, n, p, model_id)
+            reused = _reuse(episode_file(out, p, n), fp, n)
+            if reused is not None:
+                done[(p, n)] = reused
+                continue
+            todo.append((p, n))
+            units += [Unit(f"{p}-n{n:02d}-u{j // k:03d}", {"n": n, "planner": p, "tasks": tasks[j:j + k]},
+                           size=len(tasks[j:j + k])) for j in range(0, len(tasks), k)]
+    rows_by: dict[tuple[str, int], list] = {key: [] for key in todo}
     failures = []
-    ctx = {"config": to_dict(cfg), "maps": [(m.map_id, m.occupancy, m.source) for m in maps]}
-    bar = Progress(sum(u.size for u in units), f"[{cfg.eval.planner}]")
+    ctx = {"config": to_dict(cfg), "maps": [(m.map_id, m.occupancy, m.source) for m in maps], "model": blob}
+    bar = Progress(sum(u.size for u in units), f"[{','.join(planners)}]")
     try:
         for r in runner.imap_unordered("roken.eval.harness:eval_unit", ctx, units):
+            key = (r.unit.payload["planner"], r.unit.payload["n"])
             if r.ok:
-                rows_by_n[r.unit.payload["n"]] += r.value
+                rows_by[key] += r.value
             else:
-                failures.append({"unit": r.unit.key, "team_size": r.unit.payload["n"], "error": r.error})
+                failures.append({"unit": r.unit.key, "planner": key[0], "team_size": key[1], "error": r.error})
             bar.update(r.unit.size)
     finally:
         runner.shutdown()
-    failed_n = {f["team_size"] for f in failures}
-    for n, rows in rows_by_n.items():
+    failed = {(f["planner"], f["team_size"]) for f in failures}
+    for (p, n), rows in rows_by.items():
         rows.sort(key=lambda r: r["seed"])
-        if n not in failed_n and rows:  # a team size with a failed unit is not stored: a re-run redoes it
-            atomic_write_table(episodes_table(rows), fs.join(out, "episodes", f"n{n:02d}.parquet"), "episodes",
-                               {"fingerprint": fingerprint(cfg, n), "skipped": skipped_by_n[n]})
-        done[n] = (rows, skipped_by_n[n])
-    per_n, all_rows, skipped_all, table_rows = {}, [], {}, []
-    for n in cfg.eval.robots:
-        rows, skipped = done[n]
-        summary = summarize(rows)
-        per_n[str(n)] = summary | {"skipped": len(skipped)}
-        skipped_all[str(n)] = skipped
-        all_rows += rows
-        table_rows.append((f"{cfg.eval.planner}@{n}", summary))
-    if len(cfg.eval.robots) > 1:
-        table_rows.append((f"{cfg.eval.planner}@all", summarize(all_rows)))
-    metrics = summarize(all_rows) | {
-        "planner": cfg.eval.planner, "by_team_size": per_n, "skipped_episodes": skipped_all,
-        "bad_maps": bad, "failures": failures, "maps": len(maps),
+        if (p, n) not in failed and rows:  # a file with a failed unit is not stored: a re-run redoes it
+            atomic_write_table(episodes_table(rows), episode_file(out, p, n), "episodes",
+                               {"fingerprint": fingerprint(cfg, n, p, model_id), "skipped": skipped_by_n[n]})
+        done[(p, n)] = (rows, skipped_by_n[n])
+    by_planner, table_rows = {}, []
+    for p in planners:
+        per_n, all_rows, skipped_all = {}, [], {}
+        for n in cfg.eval.robots:
+            rows, skipped = done[(p, n)]
+            summary = summarize(rows)
+            per_n[str(n)] = summary | {"skipped": len(skipped)}
+            skipped_all[str(n)] = skipped
+            all_rows += rows
+            table_rows.append((f"{p}@{n}", summary))
+        if len(cfg.eval.robots) > 1:
+            table_rows.append((f"{p}@all", summarize(all_rows)))
+        by_planner[p] = summarize(all_rows) | {"by_team_size": per_n, "skipped_episodes": skipped_all}
+    first = by_planner[planners[0]]
+    metrics = first | {
+        "planner": planners[0], "planners": by_planner, "model": {"path": blob["path"], "sha256": model_id}
+        if blob else None, "bad_maps": bad, "failures": failures, "maps": len(maps),
         "seconds": round(time.perf_counter() - t0, 2), "workers": runner.workers, "config": to_dict(cfg),
     }
     atomic_write_json(metrics, fs.join(out, "metrics.json"))

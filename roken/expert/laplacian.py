@@ -96,6 +96,10 @@ class LaplacianExpert:
         limit = int(np.ceil(self.cfg.step_limit_factor * L / self.tc.max_step)) + self.cfg.step_limit_extra
         return ref, L, limit
 
+    def step_limit(self, task: Task, gm: GridMap) -> int:
+        """A task's episode step limit; every planner uses the expert's, so time-outs mean the same thing."""
+        return self._prepare(task, gm)[2]
+
     # ------------------------------------------------------------------ main loop
     def run(self, tasks: list[Task], maps: dict[str, GridMap]):
         """Yield (task index, ExpertEpisode) as episodes finish (not in task order)."""

@@ -107,6 +107,12 @@ def make_prompt(model: RokenDiT, cond: dict, given: torch.Tensor | None = None, 
     return Prompt(rep, given, fixed, generated, ctx if ctx is not None else model.encode_map(cond["map"]))
 
 
+def _randn(shape, generator, device, noise):
+    """Standard normal noise: from `noise(shape)` when given (the planner draws it per episode, so an episode's
+    samples do not depend on which other episodes share its batch), else from `generator`."""
+    return noise(shape).to(device) if noise is not None else torch.randn(shape, generator=generator, device=device)
+
+
 def _eps(model, prompt: Prompt, x, k: int):
     ks = torch.full((x.shape[0],), k, device=x.device, dtype=torch.long)
     return model(torch.where(prompt.fixed, prompt.given, x), ks, prompt.cond, ctx=prompt.ctx)["eps"], ks
@@ -124,14 +130,14 @@ class Rollout:
 
 @torch.no_grad()
 def ddpm_sample(model: RokenDiT, sched: NoiseSchedule, prompt: Prompt, generator: torch.Generator | None = None,
-                record: bool = False) -> Rollout:
-    x = torch.randn(prompt.given.shape, generator=generator, device=prompt.given.device)
+                record: bool = False, noise=None) -> Rollout:
+    x = _randn(prompt.given.shape, generator, prompt.given.device, noise)
     x = torch.where(prompt.fixed, prompt.given, x)
     lat, means, sigmas, lps = [x], [], [], []
     for k in range(sched.K - 1, -1, -1):
         eps, ks = _eps(model, prompt, x, k)
         mean, sigma = sched.posterior(x, ks, eps)
-        x_new = mean + sigma * torch.randn(x.shape, generator=generator, device=x.device)
+        x_new = mean + sigma * _randn(x.shape, generator, x.device, noise)
         x_new = torch.where(prompt.fixed, prompt.given, x_new)
         if record:
             lat.append(x_new)
@@ -159,9 +165,9 @@ def ddim_steps(K: int, steps: int) -> list[int]:
 
 @torch.no_grad()
 def ddim_sample(model: RokenDiT, sched: NoiseSchedule, prompt: Prompt, steps: int = 10, eta: float = 0.0,
-                generator: torch.Generator | None = None) -> Rollout:
+                generator: torch.Generator | None = None, noise=None) -> Rollout:
     """DDIM (Song et al.) over `steps` evenly spaced diffusion steps; eta = 0 is deterministic."""
-    x = torch.randn(prompt.given.shape, generator=generator, device=prompt.given.device)
+    x = _randn(prompt.given.shape, generator, prompt.given.device, noise)
     seq = ddim_steps(sched.K, steps)
     for i, k in enumerate(seq):
         eps, ks = _eps(model, prompt, x, k)
@@ -172,5 +178,5 @@ def ddim_sample(model: RokenDiT, sched: NoiseSchedule, prompt: Prompt, steps: in
         sigma = eta * ((1 - a_prev) / (1 - a) * (1 - a / a_prev)).clamp(min=0).sqrt()
         x = a_prev.sqrt() * x0 + (1 - a_prev - sigma ** 2).clamp(min=0).sqrt() * eps
         if eta > 0:
-            x = x + sigma * torch.randn(x.shape, generator=generator, device=x.device)
+            x = x + sigma * _randn(x.shape, generator, x.device, noise)
     return Rollout(torch.where(prompt.fixed, prompt.given, x))

@@ -1,0 +1,93 @@
+"""Roken as a planner: plan latency and closed-loop evaluation throughput.
+
+    python benchmarks/plan.py                                  # CPU, small + paper presets, all threads
+    python benchmarks/plan.py --threads 2 --presets paper
+    python benchmarks/plan.py --device cuda --dtype bf16        # GPU
+    python benchmarks/plan.py --rollout-only --checkpoint models/roken-small-mixed
+
+Latency: one plan = the condition (roken.data.condition), map encoding and DDIM-10 for all robots, 1 or 32
+candidates in one batch, through RokenPlanner.sample (random weights: the cost does not depend on them);
+median over repeats after warm-up. Throughput: closed-loop episodes/s of the shipped model on the same
+evaluation tasks with continuous batching (plan.batch_size episodes per model call) vs one episode at a time.
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+import torch
+
+from roken.config import load_config
+from roken.data.condition import build_condition
+from roken.data.samples import SampleConfig
+from roken.eval.harness import make_tasks
+from roken.model.diffusion import DiffusionConfig, NoiseSchedule
+from roken.model.dit import RokenDiT, preset
+from roken.plan import PlanConfig, RokenPlanner, RokenRollout
+from roken.world.maps import MapConfig, generate_map
+
+
+def latency(planner: RokenPlanner, n: int, G: int, repeat: int, rng) -> float:
+    occ = generate_map(MapConfig(), "eval", 0).occupancy
+    free = np.argwhere(occ == 0)
+    times = []
+    for r in range(repeat + 2):
+        starts = free[rng.choice(len(free), size=n, replace=False)][:, ::-1] + 0.5
+        t0 = time.perf_counter()
+        cond = build_condition(occ, starts, 0, free[0][::-1] + 0.5, planner.cfg, tokens=n)
+        planner.sample([cond], G, "ddim", 10)
+        if planner.device.type == "cuda":
+            torch.cuda.synchronize()
+        if r >= 2:
+            times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def throughput(checkpoint: str, episodes: int, batch: int, device: str) -> float:
+    cfg = load_config(None, [f"eval.episodes={episodes}"])
+    maps = [generate_map(cfg.map, "eval", i) for i in range(episodes)]
+    tasks, _ = make_tasks(cfg, maps, 4)
+    planner = RokenPlanner.load(checkpoint, device)
+    ro = RokenRollout(planner, PlanConfig(batch_size=batch, device=device), cfg.task, cfg.expert)
+    t0 = time.perf_counter()
+    steps = sum(len(p) - 1 for _, p, _ in ro.run([t for _, t in tasks], {m.map_id: m for m in maps}))
+    dt = time.perf_counter() - t0
+    print(f"  batch {batch:>3}: {len(tasks)} episodes ({steps} simulator steps) in {dt:.1f} s = "
+          f"{len(tasks) / dt:.2f} episodes/s, {steps / dt:.0f} steps/s")
+    return len(tasks) / dt
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--presets", default="small,paper")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--dtype", default="fp32", choices=["fp32", "bf16"])
+    p.add_argument("--threads", type=int, default=0)
+    p.add_argument("--repeat", type=int, default=5)
+    p.add_argument("--checkpoint", default="models/roken-small-mixed")
+    p.add_argument("--episodes", type=int, default=16, help="closed-loop episodes (4 robots)")
+    p.add_argument("--rollout-only", action="store_true")
+    a = p.parse_args(argv)
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    print(f"device {a.device}, dtype {a.dtype}, torch threads {torch.get_num_threads()}")
+    rng = np.random.default_rng(0)
+    if not a.rollout_only:
+        print(f"{'preset':<8}{'robots':>7}{'candidates':>11}{'ms / plan (DDIM-10)':>22}")
+        for name in a.presets.split(","):
+            model = RokenDiT(preset(name)).to(a.device)
+            planner = RokenPlanner(model, NoiseSchedule(DiffusionConfig(), a.device), SampleConfig(), a.device, a.dtype)
+            for n in (4, 10):
+                for G in (1, 32):
+                    ms = latency(planner, n, G, a.repeat, rng) * 1e3
+                    print(f"{name:<8}{n:>7}{G:>11}{ms:>22.1f}")
+    print(f"closed loop, {a.checkpoint}, 4 robots, DDIM-10, replan every 2:")
+    one = throughput(a.checkpoint, a.episodes, 1, a.device)
+    many = throughput(a.checkpoint, a.episodes, 64, a.device)
+    print(f"  continuous batching speed-up: {many / one:.1f}x")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,52 @@
+"""The paper's sweeps for a checkpoint: scalability, replanning frequency, sensing range (roken.eval.sweeps).
+
+    python pipelines/sweep.py --checkpoint models/roken-small-mixed --episodes 200 --out runs/sweeps --local
+    python pipelines/sweep.py --checkpoint RUN_DIR --sweeps replanning --episodes 50 --out runs/sw --workers 0
+
+Writes OUT/<sweep>.json, .md and .png, and one evaluation folder per setting (re-running resumes).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from common import add_common_args, explain_relative_out, make_runner
+
+from roken.config import ConfigError, load_config
+from roken.data.store import StoreError
+from roken.eval.harness import check, load_model
+from roken.eval.sweeps import SWEEPS, run_sweep
+from roken.train.checkpoint import CheckpointError
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--checkpoint", required=True, help="checkpoint directory or run folder")
+    ap.add_argument("--sweeps", default=",".join(SWEEPS), help=f"comma list of {', '.join(SWEEPS)}")
+    ap.add_argument("--episodes", type=int, default=200, help="episodes per setting")
+    ap.add_argument("--maps", default="eval", help="eval, train, or a folder of map files")
+    ap.add_argument("--out", required=True)
+    add_common_args(ap)
+    args = ap.parse_args(argv)
+    try:
+        cfg = load_config(args.config, list(args.set) + [f"plan.checkpoint={args.checkpoint}", "eval.planner=roken",
+                                                          f"eval.episodes={args.episodes}", f"eval.maps={args.maps}"])
+        explain_relative_out(args.out)
+        check(cfg.eval)
+        blob, _ = load_model(cfg)
+        names = [s.strip() for s in args.sweeps.split(",") if s.strip()]
+        bad = [s for s in names if s not in SWEEPS]
+        if bad:
+            raise ValueError(f"--sweeps: unknown {', '.join(bad)}; choose from {', '.join(SWEEPS)}")
+        runner = make_runner(args, gpus_per_worker=-1 if cfg.plan.device != "cpu" else 0)
+        for name in names:
+            run_sweep(cfg, name, args.out, blob["config"]["samples"]["max_robots"], runner)
+            print(open(f"{args.out}/{name}.md").read())
+    except (ConfigError, StoreError, CheckpointError, ValueError, OSError, ConnectionError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

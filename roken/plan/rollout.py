@@ -1,0 +1,237 @@
+"""Closed-loop Roken: receding-horizon rollout of many episodes at once (paper appendix, "Ablations on
+Replanning Frequency"; ARCHITECTURE.md, "Planner").
+
+Per re-plan, for every running episode: the condition of the current state (the known map under partial
+observation), one batched model call for all episodes (G candidates each; one call per cluster stage in
+clustered rollout), verified selection when asked, then the first `replan_every` chunk moves are executed.
+A chunk move spans `interval` simulator steps: each step heads for the point `s / interval` of the way along
+the move and is clipped to `max_step` by its norm, and every simulator step is recorded, so the episodes
+have the expert's format, step limit and metrics. Episodes run in `batch_size` slots; a finished slot takes the
+next task (continuous batching, as the expert does). An episode ends when the leader is within eps_goal of
+the goal or at the expert's step limit for the same task.
+
+Each episode draws its noise from its own generator, seeded by (plan.seed, task seed): the same seed gives the
+same episodes, and an episode's samples do not depend on which episodes share its batch.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..data.condition import build_condition, known_occupancy, sensed_cells
+from ..expert.laplacian import ExpertConfig, LaplacianExpert
+from ..world.geometry import pad_for_clearance
+from ..world.grid import GridMap
+from ..world.tasks import Task, TaskConfig
+from .clusters import Cluster, overlapping_clusters
+from .planner import SAMPLERS, RokenPlanner
+from .select import SELECTIONS, choose, geodesic_field, progress, violations
+
+
+@dataclass
+class PlanConfig:
+    checkpoint: str = ""  # checkpoint directory or run folder (evaluate.py --checkpoint)
+    which: str = "latest"  # a run folder's "latest" or "best" checkpoint
+    replan_every: int = 2  # chunk moves executed before re-planning (paper: 2)
+    cluster_size: int = 0  # 0: direct rollout (one call for the team); k >= 2: clustered rollout, clusters <= k
+    cluster_new: int = 1  # robots generated per later cluster (1: the paper's bias to 3 given + 1 generated)
+    sensing_range: float = 0.0  # metres; 0 = the whole map is known (paper Table 2: 20, 10, 5)
+    accumulate: bool = False  # keep what was seen at earlier re-plans (a map built while driving)
+    candidates: int = 16  # G candidates per re-plan for verified selection (plain Roken uses 1)
+    select: str = "none"  # none | safe | geodesic (roken+safe / roken+geodesic rows)
+    fallback: str = "hold"  # no clean candidate: "hold" (the re-planned robots stop: a safety stop) or "fewest"
+    sampler: str = "ddim"  # ddim | ddpm
+    steps: int = 10  # DDIM steps (DDPM uses every diffusion step)
+    device: str = "auto"  # auto (cuda where available) | cpu | cuda
+    dtype: str = "fp32"  # fp32 | bf16 (autocast)
+    batch_size: int = 64  # episodes stepped together
+    seed: int = 0
+    record_plans: bool = True  # store each re-plan's chunk with the episode (for the GIF)
+
+
+def check(pc: PlanConfig, planner: RokenPlanner | None = None, team_size: int | None = None) -> None:
+    """Flags checked before anything runs, naming the flag."""
+    if pc.replan_every < 1:
+        raise ValueError(f"--replan-every {pc.replan_every}: must be >= 1")
+    if pc.fallback not in ("hold", "fewest"):
+        raise ValueError(f"plan.fallback={pc.fallback!r}: choose hold or fewest")
+    if pc.select not in SELECTIONS:
+        raise ValueError(f"--select {pc.select!r}: choose one of {', '.join(SELECTIONS)}")
+    if pc.sampler not in SAMPLERS:
+        raise ValueError(f"--sampler {pc.sampler!r}: choose one of {', '.join(SAMPLERS)}")
+    if pc.candidates < 1 or pc.steps < 1 or pc.batch_size < 1:
+        raise ValueError(f"--candidates {pc.candidates}, --steps {pc.steps}, plan.batch_size {pc.batch_size}: "
+                         f"each must be >= 1")
+    if pc.cluster_size == 1 or pc.cluster_size < 0:
+        raise ValueError(f"--cluster-size {pc.cluster_size}: 0 (direct rollout) or >= 2")
+    if pc.sensing_range < 0:
+        raise ValueError(f"--sensing-range {pc.sensing_range}: 0 (whole map) or a range in metres")
+    if planner is not None:
+        H = planner.cfg.horizon
+        if pc.replan_every > H:
+            raise ValueError(f"--replan-every {pc.replan_every}: a plan has only {H} chunk moves")
+        if pc.cluster_size > planner.max_robots:
+            raise ValueError(f"--cluster-size {pc.cluster_size}: the model has {planner.max_robots} robot tokens")
+        if team_size is not None and not pc.cluster_size and team_size > planner.max_robots:
+            raise ValueError(f"{team_size} robots, but the model plans at most {planner.max_robots} in one call "
+                             f"(samples.max_robots of {planner.source}); use clustered rollout: --cluster-size 4")
+
+
+class RokenRollout:
+    """Runs tasks of one team size in closed loop with a RokenPlanner."""
+
+    def __init__(self, planner: RokenPlanner, pc: PlanConfig, tc: TaskConfig, expert: ExpertConfig | None = None):
+        check(pc, planner)
+        self.planner, self.pc, self.tc = planner, pc, tc
+        self.limits = LaplacianExpert(expert or ExpertConfig(), tc)  # the same step limit as the expert
+        self.G = pc.candidates if pc.select != "none" else 1
+
+    def clusters(self, q: np.ndarray, leader: int) -> list[Cluster]:
+        N = len(q)
+        if not self.pc.cluster_size or N <= 1:
+            return [Cluster(np.arange(N), np.zeros(N, bool), leader)]
+        return overlapping_clusters(q, leader, self.tc.comm_radius, self.pc.cluster_size, self.pc.cluster_new)
+
+    def plan_step(self, slots: list["_Slot"]) -> np.ndarray:
+        """One re-plan for the given episodes: (len(slots), N, H, 2) the chosen plans in metres."""
+        pc, tc, H = self.pc, self.tc, self.planner.cfg.horizon
+        N = len(slots[0].q)
+        planned = np.full((len(slots), N, H, 2), np.nan, np.float32)
+        done = np.zeros((len(slots), N), bool)
+        cl = [self.clusters(s.q, s.task.leader) for s in slots]
+        for stage in range(max(len(c) for c in cl)):
+            rows = [b for b in range(len(slots)) if stage < len(cl[b])]
+            T = max(len(cl[b][stage].members) for b in rows)
+            conds = []
+            for b in rows:
+                s, c = slots[b], cl[b][stage]
+                goal = s.task.goal if c.leader >= 0 else None
+                conds.append(build_condition(s.gm.occupancy, s.q[c.members], c.leader, goal, self.planner.cfg,
+                                             given=planned[b][c.members], fixed=c.fixed, seen=s.seen, tokens=T))
+            out = self.planner.sample(conds, self.G, pc.sampler, pc.steps, [slots[b].gen for b in rows])
+            for j, b in enumerate(rows):
+                s, c = slots[b], cl[b][stage]
+                m = len(c.members)
+                cand = out[j, :, :m]  # (G, m, H, 2)
+                g = 0
+                if pc.select != "none":
+                    start = np.broadcast_to(s.q[c.members][None, :, None], (self.G, m, 1, 2))
+                    paths = np.concatenate([start, cand], axis=2)  # (G, m, H+1, 2)
+                    others = np.flatnonzero(done[b] & ~np.isin(np.arange(N), c.members))
+                    other_paths = np.concatenate([s.q[others][:, None], planned[b][others]], axis=1)
+                    viol = violations(paths, s.padded_known, other_paths, tc.d_obs_min, tc.d_coll_min, tc.comm_radius)
+                    prog = np.zeros(self.G)
+                    if c.leader >= 0 and not c.fixed[c.leader]:
+                        prog = progress(s.q[s.task.leader], cand[:, c.leader, -1], s.task.goal,
+                                        s.geodesic if pc.select == "geodesic" else None)
+                    g = choose(viol, prog)
+                    if viol[g] > 0 and pc.fallback == "hold":
+                        cand = np.broadcast_to(s.q[c.members][None, :, None], cand.shape)
+                        s.holds += 1
+                gen = c.members[~c.fixed]
+                planned[b][gen] = cand[g][~c.fixed]
+                done[b][gen] = True
+        return planned
+
+    def run(self, tasks: list[Task], maps: dict[str, GridMap]):
+        """Yield (task index, positions (T+1, N, 2) float32, info) as episodes finish (not in task order)."""
+        if not tasks:
+            return
+        N = tasks[0].num_robots
+        if any(t.num_robots != N for t in tasks):
+            raise ValueError("RokenRollout.run takes tasks of one team size; group them first")
+        check(self.pc, self.planner, N)
+        pc, tc, cfg = self.pc, self.tc, self.planner.cfg
+        pending = list(range(len(tasks)))[::-1]
+        slots: list[_Slot | None] = [None] * min(pc.batch_size, len(tasks))
+
+        def fill(k: int):
+            i = pending.pop()
+            slots[k] = _Slot(i, tasks[i], maps[tasks[i].map_id], self)
+
+        for k in range(len(slots)):
+            fill(k)
+        while any(s is not None for s in slots):
+            live = [s for s in slots if s is not None]
+            for s in live:
+                s.observe()
+            plans = self.plan_step(live)
+            for s, plan in zip(live, plans):
+                s.execute(plan)
+            for k, s in enumerate(slots):
+                if s is not None and s.finished:
+                    yield s.index, np.asarray(s.hist, np.float32), s.info()
+                    slots[k] = None
+                    if pending:
+                        fill(k)
+
+
+class _Slot:
+    """One running episode: state, what it knows, its noise generator and its record."""
+
+    def __init__(self, index: int, task: Task, gm: GridMap, ro: RokenRollout):
+        self.index, self.task, self.gm, self.ro = index, task, gm, ro
+        if gm.shape != (ro.planner.cfg.canvas,) * 2:
+            raise ValueError(f"map {gm.map_id} is {gm.shape}; the model's canvas is {ro.planner.cfg.canvas}: "
+                             f"fit maps to the canvas (the harness's map loaders do)")
+        self.q = np.asarray(task.starts, np.float64).copy()
+        self.hist = [self.q.astype(np.float32)]
+        self.limit = ro.limits.step_limit(task, gm)
+        seed = np.random.SeedSequence([ro.pc.seed, int(task.seed), len(self.q)]).generate_state(2)
+        self.gen = torch.Generator().manual_seed(int(seed[0]) << 32 | int(seed[1]))
+        self.seen = None
+        self.plans: list[np.ndarray] = []
+        self.plan_steps: list[int] = []
+        self.reached = False
+        self.holds = 0  # re-plans where no candidate was clean and the team held position
+        self.padded_known = gm.padded
+        self.geodesic = None
+        if ro.pc.select == "geodesic" and not ro.pc.sensing_range:
+            self.geodesic = geodesic_field(gm.occupancy, task.goal)
+
+    @property
+    def finished(self) -> bool:
+        return self.reached or len(self.hist) - 1 >= self.limit
+
+    def observe(self) -> None:
+        """Update what the team knows before a re-plan (partial observation only)."""
+        pc = self.ro.pc
+        if not pc.sensing_range:
+            return
+        now = sensed_cells(self.q, self.gm.shape[0], pc.sensing_range)
+        self.seen = now if self.seen is None or not pc.accumulate else self.seen | now
+        if pc.select != "none":
+            known = known_occupancy(self.gm.occupancy, self.seen)
+            self.padded_known = pad_for_clearance(known)
+            if pc.select == "geodesic":
+                self.geodesic = geodesic_field(known, self.task.goal)
+
+    def execute(self, plan: np.ndarray) -> None:
+        """The first replan_every chunk moves of plan (N, H, 2), one simulator step at a time."""
+        pc, tc, cfg = self.ro.pc, self.ro.tc, self.ro.planner.cfg
+        if pc.record_plans:
+            self.plans.append(plan.astype(np.float32))
+            self.plan_steps.append(len(self.hist) - 1)
+        prev = self.q.copy()
+        leader, goal = self.task.leader, np.asarray(self.task.goal, np.float64)
+        for j in range(pc.replan_every):
+            for k in range(1, cfg.interval + 1):
+                d = prev + (plan[:, j] - prev) * (k / cfg.interval) - self.q
+                norm = np.linalg.norm(d, axis=-1, keepdims=True)
+                # clip by the norm (never per component), 0.1 mm inside max_step so that the stored float32
+                # positions (what the metrics read) never step further; the state is the stored value
+                step = d * np.minimum(1.0, (tc.max_step - 1e-4) / np.maximum(norm, 1e-12))
+                self.hist.append((self.q + step).astype(np.float32))
+                self.q = self.hist[-1].astype(np.float64)
+                # the metric's reach test on the stored (float32) positions
+                if np.linalg.norm(self.hist[-1][leader].astype(np.float64) - goal) <= tc.eps_goal:
+                    self.reached = True
+                if self.finished:
+                    return
+            prev = plan[:, j].astype(np.float64)
+
+    def info(self) -> dict:
+        return {"reached": self.reached, "limit": self.limit, "holds": self.holds, "plan_steps": self.plan_steps,
+                "plans": np.asarray(self.plans, np.float32)}

@@ -1,0 +1,158 @@
+"""The Roken planner: conditional mode, clustered rollout, partial observation, the closed loop, selection."""
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from roken.config import load_config
+from roken.data.condition import build_condition, sensed_cells
+from roken.data.samples import SampleConfig
+from roken.eval.harness import make_tasks
+from roken.model.diffusion import DiffusionConfig, NoiseSchedule
+from roken.model.dit import RokenDiT, preset
+from roken.plan import PlanConfig, RokenPlanner, RokenRollout
+from roken.plan.clusters import overlapping_clusters
+from roken.plan.select import choose, violations
+from roken.world.geometry import pad_for_clearance
+from roken.world.maps import generate_map
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    """A random tiny model: it moves robots anywhere, which is what the execution and mask tests need."""
+    torch.manual_seed(0)
+    model = RokenDiT(preset("tiny"))
+    for p in model.final.parameters():  # AdaLN-Zero starts at eps = 0; make the output non-trivial
+        torch.nn.init.normal_(p, std=0.5)
+    return RokenPlanner(model, NoiseSchedule(DiffusionConfig(num_steps=20)), SampleConfig(), "cpu")
+
+
+def test_conditional_mode_returns_given_robots_exactly(tiny):
+    occ = np.zeros((140, 140), np.uint8)
+    pos = np.array([[40.0, 40.0], [45.0, 40.0], [40.0, 46.0]])
+    path = np.cumsum(np.full((16, 2), 0.7), axis=0) + pos[1]
+    out = tiny.plan(occ, pos, leader=0, goal=(100, 100), fixed={1: path}, candidates=3, seed=1)
+    assert out.shape == (3, 3, 16, 2)
+    assert np.array_equal(out[:, 1], np.broadcast_to(path, (3, 16, 2)))
+    assert not np.allclose(out[0, 0], out[1, 0]), "candidates differ"
+    again = tiny.plan(occ, pos, 0, (100, 100), fixed={1: path}, candidates=3, seed=1)
+    assert np.array_equal(out, again)
+
+
+def test_a_map_off_the_canvas_is_fitted_and_mapped_back(tiny):
+    occ = np.zeros((35, 50), np.uint8)  # scaled up 2x (canvas 140), then centred
+    pos = np.array([[10.0, 10.0], [14.0, 12.0]])
+    fixed_path = np.linspace(pos[1], pos[1] + [8, 0], 16)
+    out = tiny.plan(occ, pos, 0, (40, 30), fixed={1: fixed_path}, seed=0)
+    assert np.allclose(out[1], fixed_path)
+    with pytest.raises(ValueError, match="cluster"):
+        tiny.plan(np.zeros((140, 140)), np.random.rand(11, 2) * 100 + 20, 0, (10, 10))
+
+
+def test_clusters_generate_every_robot_once_with_given_overlaps():
+    rng = np.random.default_rng(0)
+    for trial in range(30):
+        N = int(rng.integers(2, 13))
+        pos = np.cumsum(rng.uniform(-9, 9, (N, 2)), axis=0) + 70  # a chain: mostly connected
+        leader = int(rng.integers(N))
+        clusters = overlapping_clusters(pos, leader, 15.0, size=4, new=1)
+        generated = np.concatenate([c.generated for c in clusters])
+        assert sorted(generated.tolist()) == list(range(N)), "each robot generated exactly once"
+        assert clusters[0].leader >= 0 and not clusters[0].fixed.any()
+        planned = set(clusters[0].generated.tolist())
+        for c in clusters:
+            assert len(c.members) <= 4 and len(set(c.members.tolist())) == len(c.members)
+            assert set(c.members[c.fixed].tolist()) <= planned, "conditions are robots planned before"
+            if c is not clusters[0] and c.fixed.any():
+                planned_before = len(planned)
+                assert c.fixed.sum() >= min(3, planned_before) or len(c.generated) > 1
+            planned |= set(c.generated.tolist())
+
+
+def test_clustered_rollout_holds_earlier_robots_fixed(tiny):
+    cfg = load_config(None, [])
+    gm = generate_map(cfg.map, "eval", 0)
+    tasks, _ = make_tasks(load_config(None, ["eval.episodes=1"]), [gm], 7)
+    ro = RokenRollout(tiny, PlanConfig(cluster_size=4, cluster_new=1, batch_size=4, device="cpu"), cfg.task)
+    from roken.plan.rollout import _Slot
+    seen_given = []
+    real = tiny.sample
+
+    def spy(conds, *a, **k):
+        out = real(conds, *a, **k)
+        for c, o in zip(conds, out):
+            f = c["traj_mask"] > 0
+            seen_given.append(np.abs(o[:, f] - (c["start"][f][:, None] + np.cumsum(c["chunk"][f], 1) * 2.0)).max()
+                              if f.any() else 0.0)
+        return out
+
+    tiny.sample = spy
+    try:
+        slot = _Slot(0, tasks[0][1], gm, ro)
+        plan = ro.plan_step([slot])
+    finally:
+        tiny.sample = real
+    assert plan.shape == (1, 7, 16, 2) and np.isfinite(plan).all()
+    assert len(seen_given) >= 2 and max(seen_given) < 1e-4
+
+
+def test_sensing_mask_hides_exactly_the_cells_beyond_the_range():
+    pos = np.array([[20.3, 30.7], [60.0, 61.5]])
+    seen = sensed_cells(pos, 140, 10.0)
+    r, c = np.mgrid[:140, :140]
+    d = np.min([np.hypot(c + 0.5 - x, r + 0.5 - y) for x, y in pos], axis=0)
+    assert np.array_equal(seen, d <= 10.0)
+    occ = (np.random.default_rng(0).random((140, 140)) < 0.3).astype(np.uint8)
+    cond = build_condition(occ, pos, 0, np.array([100.0, 100.0]), SampleConfig(), seen=seen, tokens=2)
+    assert np.array_equal(cond["map"][0], np.where(seen, occ, 0)), "unseen cells are shown as free"
+
+
+def test_closed_loop_steps_are_clipped_and_reproducible(tiny):
+    cfg = load_config(None, ["eval.episodes=3"])
+    maps = [generate_map(cfg.map, "eval", i) for i in range(3)]
+    tasks, _ = make_tasks(cfg, maps, 3)
+    by_id = {m.map_id: m for m in maps}
+    pc = PlanConfig(batch_size=2, sensing_range=12.0, accumulate=True, device="cpu")
+    runs = []
+    for _ in range(2):
+        ro = RokenRollout(tiny, pc, cfg.task, cfg.expert)
+        runs.append(dict((i, (p, info)) for i, p, info in ro.run([t for _, t in tasks], by_id)))
+    assert sorted(runs[0]) == [0, 1, 2]
+    for i, (p, info) in runs[0].items():
+        steps = np.linalg.norm(np.diff(p.astype(np.float64), axis=0), axis=-1)
+        assert steps.max() <= 0.5 + 1e-6, "no simulator step exceeds max_step (by its norm)"
+        assert steps.max() > 0.3, "the random model does move"
+        assert np.array_equal(p, runs[1][i][0]), "the same seed gives the same episode"
+        assert np.array_equal(p[0], tasks[i][1].starts.astype(np.float32))
+        assert info["plans"].shape == (len(info["plan_steps"]), 3, 16, 2)
+
+
+def test_safe_selection_prefers_clean_candidates():
+    occ = np.zeros((40, 40), np.uint8)
+    occ[20:, 18:22] = 1
+    padded = pad_for_clearance(occ)
+    t = np.linspace(0, 1, 5)[:, None]
+    clean = np.stack([np.array([5.0, 5.0]) + t * [10, 0], np.array([5.0, 9.0]) + t * [10, 0]])  # (2, 5, 2)
+    crash = np.stack([np.array([5.0, 5.0]) + t * [15, 20], np.array([5.0, 9.0]) + t * [15, 20]])  # into the wall
+    apart = np.stack([np.array([5.0, 5.0]) + t * [30, 0], np.array([5.0, 9.0]) + t * [0, 25]])  # out of range
+    paths = np.stack([crash, apart, clean])
+    v = violations(paths, padded, None, 1.0, 2.0, 15.0)
+    assert v[2] == 0 and v[0] > 0 and v[1] > 0
+    assert choose(v, np.array([20.0, 30.0, 10.0])) == 2, "a clean candidate beats more progress"
+
+
+def test_evaluate_refuses_a_team_larger_than_the_model_up_front(tmp_path):
+    r = subprocess.run([sys.executable, str(ROOT / "pipelines" / "evaluate.py"), "--planner", "roken",
+                        "--checkpoint", str(ROOT / "models" / "roken-small-mixed"), "--robots", "12",
+                        "--episodes", "1", "--out", str(tmp_path / "e"), "--workers", "0"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "--cluster-size" in r.stderr and not (tmp_path / "e").exists()
+    r = subprocess.run([sys.executable, str(ROOT / "pipelines" / "evaluate.py"), "--planner", "roken",
+                        "--robots", "2", "--episodes", "1", "--out", str(tmp_path / "e"), "--workers", "0"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "--checkpoint" in r.stderr and not (tmp_path / "e").exists()
