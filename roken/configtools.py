@@ -153,6 +153,15 @@ def load(cls: type, path: str | Path | None = None, overrides: list[str] | None 
     return from_dict(cls, tree)
 
 
+def with_overrides(cfg: Any, overrides: dict[str, Any]) -> Any:
+    """A copy of config `cfg` with `{dotted.key: value}` set, checked like --set (unknown keys are errors)."""
+    tree = to_dict(cfg)
+    for key, value in overrides.items():
+        _check_path(type(cfg), key)
+        _set_dotted(tree, key, value)
+    return from_dict(type(cfg), tree)
+
+
 def _check_keys(cls: type, data: dict, prefix: str) -> None:
     from_dict_keys = {f.name: f for f in dataclasses.fields(cls)}
     hints = typing.get_type_hints(cls)

@@ -273,16 +273,17 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
     units, skipped_by_n, todo = [], {}, []
     k = cfg.eval.unit_episodes
     for n in cfg.eval.robots:
-        tasks, skipped = make_tasks(cfg, maps, n)
-        skipped_by_n[n] = skipped
-        for s in skipped:
-            print(f"[N={n}] skipped episode {s['episode']}: {s['reason']}", file=sys.stderr)
+        tasks = None
         for p in planners:
-            fp = fingerprint(cfg, n, p, model_id)
-            reused = _reuse(episode_file(out, p, n), fp, n)
+            reused = _reuse(episode_file(out, p, n), fingerprint(cfg, n, p, model_id), n)
             if reused is not None:
                 done[(p, n)] = reused
+                skipped_by_n.setdefault(n, reused[1])
                 continue
+            if tasks is None:  # sampled once per team size, only when some planner has to run them
+                tasks, skipped_by_n[n] = make_tasks(cfg, maps, n)
+                for s in skipped_by_n[n]:
+                    print(f"[N={n}] skipped episode {s['episode']}: {s['reason']}", file=sys.stderr)
             todo.append((p, n))
             units += [Unit(f"{p}-n{n:02d}-u{j // k:03d}", {"n": n, "planner": p, "tasks": tasks[j:j + k]},
                            size=len(tasks[j:j + k])) for j in range(0, len(tasks), k)]

@@ -9,7 +9,7 @@ import json
 import sys
 from pathlib import Path
 
-from ..configtools import _set_dotted, from_dict, to_dict
+from ..configtools import to_dict, with_overrides
 from ..data import fs
 from ..data.store import atomic_write_json
 from .harness import evaluate
@@ -34,19 +34,12 @@ def settings(name: str, max_robots: int) -> list[tuple[str, float, dict]]:
     raise ValueError(f"--sweeps: unknown sweep {name!r}; choose from {', '.join(SWEEPS)}")
 
 
-def _with(cfg, overrides: dict):
-    tree = to_dict(cfg)
-    for k, v in overrides.items():
-        _set_dotted(tree, k, v)
-    return from_dict(type(cfg), json.loads(json.dumps(tree, default=str)))
-
-
 def run_sweep(cfg, name: str, out: str, max_robots: int, runner=None) -> list[dict]:
     rows = []
     for label, x, ov in settings(name, max_robots):
         slug = label.replace(" ", "-").replace("=", "")
         print(f"== {name}: {label}", file=sys.stderr, flush=True)
-        m = evaluate(_with(cfg, ov), fs.join(out, name, slug), runner)
+        m = evaluate(with_overrides(cfg, ov), fs.join(out, name, slug), runner)
         for planner, summary in m["planners"].items():
             mode = label.split()[0] if name == "scalability" and planner != "laplacian" else planner
             rows.append({"sweep": name, "setting": label, "x": x, "planner": mode} |

@@ -25,18 +25,11 @@ from ..data.condition import build_condition, decode_chunk
 from ..data.samples import SampleConfig
 from ..model.diffusion import COND_KEYS, DiffusionConfig, NoiseSchedule, ddim_sample, ddpm_sample, make_prompt
 from ..model.dit import ModelConfig, RokenDiT
+from ..train.loop import pick_device
 from ..world.loaders import fit_to_canvas
 
 DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
 SAMPLERS = ("ddim", "ddpm")
-
-
-def resolve_device(device: str) -> torch.device:
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"--device {device}: CUDA is not available on this machine; use --device cpu")
-    return torch.device(device)
 
 
 class RokenPlanner:
@@ -59,7 +52,7 @@ class RokenPlanner:
         """A checkpoint directory, or a run folder's latest / best checkpoint (CheckpointError if unusable)."""
         from ..train.checkpoint import load
 
-        dev = resolve_device(device)
+        dev = pick_device(device)
         ld = load(path, dev, which=which, task_max_step=task_max_step)
         return cls(ld.model, ld.schedule, ld.samples, dev, dtype, str(ld.path))
 
@@ -81,7 +74,7 @@ class RokenPlanner:
 
         from ..train.checkpoint import load_weights
 
-        cfg, dev = blob["config"], resolve_device(device)
+        cfg, dev = blob["config"], pick_device(device)
         model = RokenDiT(from_dict(ModelConfig, cfg["model"], "model."))
         load_weights(model, load_bytes(blob["weights"]), blob["path"])
         sched = NoiseSchedule(from_dict(DiffusionConfig, cfg["diffusion"], "diffusion."), dev)

@@ -98,7 +98,12 @@ def lr_factor(step: int, cfg: TrainConfig) -> float:
 
 
 def pick_device(name: str) -> torch.device:
-    return torch.device("cuda" if torch.cuda.is_available() else "cpu") if name == "auto" else torch.device(name)
+    """"auto" = cuda where available; asking for cuda on a machine without it is said up front."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"--device {name}: CUDA is not available on this machine; use --device cpu")
+    return torch.device(name)
 
 
 class LocalBackend:
