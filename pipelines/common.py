@@ -15,6 +15,10 @@ import os
 import sys
 from pathlib import Path
 
+# Before anything imports Ray (torchrl does, on import): Ray reads the auth mode once. Token authentication
+# stays on unless the user turned it off explicitly (RAY_AUTH_MODE=disabled).
+os.environ.setdefault("RAY_AUTH_MODE", "token")
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # run from a checkout (or a job's uploaded working dir) without installing
 

@@ -12,6 +12,7 @@ from .model.diffusion import DiffusionConfig
 from .model.dit import ModelConfig
 from .model.losses import LossConfig
 from .plan.rollout import PlanConfig
+from .rl.config import RLConfig
 from .train.loop import TrainConfig
 from .world.maps import MapConfig
 from .world.tasks import TaskConfig
@@ -30,6 +31,7 @@ class Config:
     loss: LossConfig = field(default_factory=LossConfig)
     train: TrainConfig = field(default_factory=TrainConfig)  # pretraining (roken/train/loop.py)
     plan: PlanConfig = field(default_factory=PlanConfig)  # Roken as a planner in closed loop (roken/plan)
+    rl: RLConfig = field(default_factory=RLConfig)  # GRPO post-training (roken/rl)
 
 
 def load_config(path=None, overrides: list[str] | None = None) -> Config:

@@ -21,10 +21,10 @@ from typing import Iterable, Iterator
 os.environ.setdefault("RAY_AUTH_MODE", "token")
 
 import ray  # noqa: E402
-from ray.exceptions import (AuthenticationError, GetTimeoutError, ObjectLostError, OutOfMemoryError, RayActorError,
-                            WorkerCrashedError)
+from ray.exceptions import (ActorUnavailableError, AuthenticationError, GetTimeoutError, ObjectLostError,
+                            OutOfMemoryError, RayActorError, WorkerCrashedError)
 
-from .units import Unit, UnitResult, call_unit, in_ray_job, resolve_function, worker_name  # noqa: E402
+from .units import Shared, Unit, UnitResult, call_unit, in_ray_job, resolve_function, worker_name  # noqa: E402
 
 # Failures of the process, not of the unit's code (that is caught inside call_unit): worth another attempt.
 RETRYABLE = (RayActorError, WorkerCrashedError, OutOfMemoryError, ObjectLostError)
@@ -41,6 +41,8 @@ def connect(address: str | None = None, local: bool = False, num_cpus: int | Non
     `code_root` is put on the workers' PYTHONPATH so they import this checkout without installing it
     (a submitted job gets the same from its uploaded working directory instead).
     """
+    if ray.is_initialized():  # a pipeline that runs several stages (post-training, then its evaluation)
+        return ray.cluster_resources()
     if local and not _has_token():
         # A private cluster gets a private secret; it lives in this process's environment only (the
         # cluster processes started by ray.init inherit it), nothing is written to ~/.ray.
@@ -127,12 +129,18 @@ class RayRunner:
         self.retries = 0
         self.names: list[str] = []
         self.startup_seconds = 0.0  # creating the actors until all answered
+        self._started: tuple = ()
 
     def describe(self) -> str:
         return f"Ray, {self.workers} actor(s): {', '.join(self.names)}"
 
+    def publish(self, value, version: int) -> Shared:
+        """One object-store copy of `value` (GRPO's weights) that units carry by reference."""
+        return Shared(version, ref=[ray.put(value)])
+
     def _start(self, fn_ref: str, ctx: dict) -> None:
         t0 = time.perf_counter()
+        self._started = (fn_ref, ctx)  # held, so the ctx's identity cannot be reused
         self.ctx_box = [ray.put(ctx)]  # one copy in the object store, shared by every actor
         self.actors = [UnitWorker.options(scheduling_strategy="SPREAD", num_gpus=self.num_gpus).remote(fn_ref)
                        for _ in range(self.workers)]
@@ -148,7 +156,11 @@ class RayRunner:
         queue = deque((u, 1) for u in units)
         if not queue:
             return
-        self._start(fn_ref, ctx)
+        if not self.actors or self._started[0] != fn_ref or self._started[1] is not ctx:
+            # a later call with the same function and ctx reuses the actors and their caches (GRPO's
+            # iterations keep each actor's model copy); anything else starts a fresh pool
+            self.shutdown()
+            self._start(fn_ref, ctx)
         pending: dict = {}  # ObjectRef -> (unit, attempt, actor index, submit time)
         load = [0] * len(self.actors)
         while queue or pending:
@@ -166,6 +178,13 @@ class RayRunner:
                 try:
                     result = ray.get(ref)
                 except RETRYABLE as e:
+                    if isinstance(e, ActorUnavailableError):
+                        # the actor's process died and Ray is restarting it: wait until it answers again, so the
+                        # retries below are not spent on calls to an actor that is still coming back
+                        try:
+                            ray.get(self.actors[a].name.remote(), timeout=120)
+                        except Exception:  # noqa: BLE001  (still down: the retry below goes to the least loaded)
+                            pass
                     reason = f"{type(e).__name__}: {str(e).splitlines()[0][:200]}"
                     if attempt < self.max_attempts:
                         self.retries += 1

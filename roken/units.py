@@ -70,16 +70,42 @@ def call_unit(fn: Callable, ctx: dict, unit: Unit, cache: dict) -> UnitResult:
     return UnitResult(unit, value, seconds=time.perf_counter() - t0, worker=worker_name())
 
 
+@dataclass
+class Shared:
+    """A large value every worker reads, published once per version (GRPO's weights): on Ray one object-store
+    copy (`ref`, fetched by each actor when its version changes), in-process the value itself."""
+    version: int
+    value: Any = None
+    ref: list | None = None  # [ObjectRef], boxed so that Ray does not resolve it when the unit is sent
+
+    def get(self) -> Any:
+        if self.ref is not None:
+            import ray
+
+            return ray.get(self.ref[0])
+        return self.value
+
+
 class InProcessRunner:
-    """Runs units one after another in this process: no Ray, breakpoints work (`--workers 0`)."""
+    """Runs units one after another in this process: no Ray, breakpoints work (`--workers 0`). Its cache lives
+    across calls with the same function and ctx, as a Ray actor's does."""
 
     workers = 0
 
+    def __init__(self):
+        self.cache: dict = {}
+        self._started: tuple = ()  # (function, ctx) held, so the ctx's identity cannot be reused
+
+    def publish(self, value: Any, version: int) -> Shared:
+        return Shared(version, value=value)
+
     def imap_unordered(self, fn_ref: str, ctx: dict, units: Iterable[Unit]) -> Iterator[UnitResult]:
         fn = resolve_function(fn_ref)
-        cache: dict = {}
+        # as on Ray: the cache lives while the function and the ctx stay the same
+        if not self._started or self._started[0] != fn_ref or self._started[1] is not ctx:
+            self.cache, self._started = {}, (fn_ref, ctx)
         for unit in units:
-            yield call_unit(fn, ctx, unit, cache)
+            yield call_unit(fn, ctx, unit, self.cache)
 
     def describe(self) -> str:
         return "in-process (no Ray, one core)"
