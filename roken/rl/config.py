@@ -22,8 +22,9 @@ class RLConfig:
     epochs: int = 1  # passes over one buffer before it is discarded
     minibatch_prompts: int = 4  # prompts per optimizer step (their G candidates together: one map encoding)
     # --- numerics (README: measured on the shipped model)
-    train_transitions: int = 10  # denoising transitions per candidate that enter the loss (DPPO: the last few)
-    transitions: str = "last"  # "last": the train_transitions nearest the clean chunk; "random": a random subset
+    train_transitions: int = 10  # denoising transitions per candidate that enter the loss
+    transitions: str = "random"  # "random": a random subset of the chain per group (the early, high-noise steps
+    #                              decide a chunk's shape); "last": the ones nearest the clean chunk (DPPO)
     skip_final: bool = True  # leave out k = 0 (its sigma is the floored posterior sigma; Flow-GRPO drops it)
     min_std: float = 1e-3  # a group whose reward std is below this gets zero advantages
     adv_eps: float = 1e-6
@@ -40,7 +41,10 @@ class RLConfig:
     w_goal: float = 30.0  # leader's geodesic distance to the goal at the chunk's end (normalised, below)
     w_wp: float = 50.0  # leader's deviation from the optimal path's waypoints
     reach_bonus: float = 50.0
-    c_max: float = 10000.0  # the cost of any hard violation, and the clip of the total
+    c_max: float = 10000.0  # the clip of the total cost
+    hard_cost: float = 10000.0  # added for any hard violation (paper: c_max, so every violator scores -c_max / s;
+    #                             lower, violators still rank by their violation counts: a denser signal for a
+    #                             weak model whose groups are mostly violators)
     reward_scale: float = 20.0  # r = -min(C, c_max) / s
     obs_margin: float = 0.5  # soft margin (m) beyond task.d_obs_min
     inter_margin: float = 1.0  # soft margin (m) beyond task.d_coll_min

@@ -38,7 +38,8 @@ UNIT_FN = "roken.rl.rollout:rollout_unit"
 # rl keys that must match to resume a run (iterations, logging and evaluation may change)
 RESUME_KEYS = ("prompts_per_iteration", "group_size", "clip", "kl_beta", "lr", "weight_decay", "grad_clip",
                "epochs", "minibatch_prompts", "train_transitions", "transitions", "skip_final", "seed",
-               "w_obs", "w_inter", "w_conn", "w_goal", "w_wp", "reach_bonus", "c_max", "reward_scale")
+               "w_obs", "w_inter", "w_conn", "w_goal", "w_wp", "reach_bonus", "c_max", "hard_cost",
+               "reward_scale")
 
 
 class PostTraining:

@@ -4,10 +4,11 @@ N(mu_theta(x_k, c, k), sigma_k^2 I) with the schedule's sigma. What GRPO needs f
 - Log-probabilities are means over the generated robots' elements (padding and given robots masked out), not
   sums: a sum over 4 x 16 x 2 = 128 elements turns a small change of the mean into ratios of e^100 (DDPO's
   overflow). ratio = exp(mean_lp - mean_lp_old) is the per-element geometric-mean ratio.
-- Only `train_transitions` transitions per candidate enter the loss (DPPO fine-tunes the last few): the last
-  ones before the clean chunk by default, k = 0 left out (`skip_final`): its sigma is the floored posterior
-  sigma (about 0.01 of a full-speed move), where a mean shift of 0.01 already moves the log-ratio by ~1
-  (Flow-GRPO and DanceGRPO leave that step out too). The other transitions run without recording.
+- Only `train_transitions` transitions per candidate enter the loss: a random subset of the chain by default
+  (the early, high-noise steps decide a chunk's shape; training only the last few, as DPPO does, changed
+  nothing in a laptop run), or the last ones (`transitions="last"`). k = 0 is left out (`skip_final`): its
+  sigma is the floored posterior sigma (about 0.01 of a full-speed move), where a mean shift of 0.01 already
+  moves the log-ratio by ~1 (Flow-GRPO and DanceGRPO leave that step out too). The others run unrecorded.
 - The sampler clips its x0 prediction to [-1, 1] (a full-speed move is 1). A plain clamp has zero gradient on
   the clipped elements, so the policy's mean uses a straight-through clip: the forward value is exactly the
   sampler's (ratios are exactly 1 right after a weight sync), the gradient passes as if unclipped.

@@ -16,7 +16,7 @@ closed-loop executor's rule), and every simulator step is checked. With n robots
 
 The soft counts are taken at the H planned points (not every simulator step, which would weigh a near miss 4x
 against goal progress); a hard violation (clearance < d_obs_min, a pair closer than d_coll_min, a disconnected
-step) is checked at every simulator step and costs c_max, and
+step) is checked at every simulator step and adds hard_cost (the paper's c_max by default), and
 r = -min(C, c_max) / reward_scale. Everything is vectorised over the G candidates of a group.
 """
 from __future__ import annotations
@@ -125,7 +125,7 @@ def score(plan: np.ndarray, start: np.ndarray, info: Privileged, tc: TaskConfig,
     reach = (np.linalg.norm(lead - info.goal, axis=-1) <= tc.eps_goal).any(axis=1)
     hard = obs_hard | inter_hard | conn_hard
     cost = (rc.w_obs * c_obs + rc.w_inter * c_inter + rc.w_conn * c_conn + rc.w_goal * c_goal
-            + rc.w_wp * dev / rc.wp_scale - rc.reach_bonus * reach + rc.c_max * hard)
+            + rc.w_wp * dev / rc.wp_scale - rc.reach_bonus * reach + rc.hard_cost * hard)
     reward = -np.minimum(cost, rc.c_max) / rc.reward_scale
     return reward.astype(np.float32), {"cost": cost, "hard": hard, "obs": obs_hard, "inter": inter_hard,
                                        "conn": conn_hard, "reach": reach, "goal": c_goal, "wp": dev}
