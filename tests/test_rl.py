@@ -29,7 +29,7 @@ from roken.world.tasks import TaskConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = {"group_size": 4, "prompts_per_iteration": 4, "train_transitions": 3, "minibatch_prompts": 2,
-         "min_future": 32, "lr": 1e-3, "hard_prompt_prob": 0.5, "checkpoint_every": 1}
+         "min_future": 32, "lr": 1e-3, "hard_prompt_prob": 0.5, "checkpoint_every": 1, "hard_cost": 1000.0}
 
 
 @pytest.fixture(scope="module")
@@ -146,6 +146,17 @@ def test_posttraining_updates_the_weights_writes_a_loadable_checkpoint_and_resum
     with pytest.raises(ValueError, match="other settings"):
         PostTraining(RLConfig(**SMALL | {"iterations": 4, "lr": 1e-4}), tc, tiny_ckpt, expert_dataset, out,
                      InProcessRunner()).fit()
+
+
+def test_overlapped_rollout_learns_on_groups_one_version_behind(tiny_ckpt, expert_dataset, tmp_path):
+    out = tmp_path / "overlap"
+    PostTraining(RLConfig(**SMALL | {"iterations": 3, "overlap": True}), TaskConfig(), tiny_ckpt, expert_dataset, out,
+                 InProcessRunner()).fit()
+    rows = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
+    assert [r["charts/weight_version_lag"] for r in rows] == [0, 1, 1]
+    assert [r["rollout/groups"] for r in rows] == [4, 4, 4] and rows[-1]["rollout/stale_groups"] == 0
+    assert rows[1]["losses/ratio_dev_first"] > 0  # sampled by the weights before the last update
+    assert any(not torch.equal(a, b) for a, b in zip(_weights(out).values(), _weights(tiny_ckpt).values()))
 
 
 def test_two_rollout_actors_with_one_killed_lose_no_group(tiny_ckpt, expert_dataset, tmp_path, ray_tmp):

@@ -21,6 +21,8 @@ class RLConfig:
     grad_clip: float = 0.5
     epochs: int = 1  # passes over one buffer before it is discarded
     minibatch_prompts: int = 4  # prompts per optimizer step (their G candidates together: one map encoding)
+    overlap: bool = False  # sample the next buffer (with the current weights) while the learner learns: the
+    #                        learner stops waiting for rollouts; groups arrive one weight version behind
     # --- numerics (README: measured on the shipped model)
     train_transitions: int = 10  # denoising transitions per candidate that enter the loss
     transitions: str = "random"  # "random": a random subset of the chain per group (the early, high-noise steps

@@ -13,6 +13,7 @@ from __future__ import annotations
 import copy
 import json
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
 
@@ -96,64 +97,44 @@ class PostTraining:
                   f"G={rc.group_size}, {rc.train_transitions} trained transitions each; rollouts on "
                   f"{'in-process' if self.runner.workers == 0 else f'{self.runner.workers} Ray actor(s)'}; "
                   + (f"resuming at iteration {start} from {resume}" if resume else f"iterations 0..{rc.iterations}"))
-        history, t_start, metrics = [], time.perf_counter(), {}
+        history, t_start = [], time.perf_counter()
+        self._ctx, self._bank, self._source, self._hard, self._log = ctx, bank, source, hard, log
+        buf = None
         for it in range(start, rc.iterations):
-            t0 = time.perf_counter()
-            version = it
-            shared = self.runner.publish({k: v.detach().cpu().clone() for k, v in policy.state_dict().items()},
-                                         version)
-            rng = np.random.default_rng([rc.seed, it])
-            n_hard = int(rng.binomial(rc.prompts_per_iteration, rc.hard_prompt_prob)) if len(hard) else 0
-            prompts = hard.draw(n_hard) + source.draw(rng, rc.prompts_per_iteration - n_hard)
-            k = self.prompts_per_unit
-            units = [Unit(f"it{it:04d}-u{j // k:04d}", {"prompts": prompts[j:j + k], "weights": shared},
-                          size=len(prompts[j:j + k])) for j in range(0, len(prompts), k)]
-            groups, stale, failed = [], 0, 0
-            for r in self.runner.imap_unordered(UNIT_FN, ctx, units):
-                if not r.ok:
-                    failed += 1
-                    log.print(f"[posttrain] unit {r.unit.key} failed: {r.error}")
-                    continue
-                for g in r.value:
-                    if g.version != version:
-                        stale += 1
-                        continue
-                    groups.append(g)
-            t1 = time.perf_counter()
-            if not groups:
-                raise RuntimeError(f"iteration {it}: every rollout unit failed (errors above)")
-            groups.sort(key=lambda g: g.prompt)  # the learner's order does not depend on which actor was first
-            conds = [condition(bank, g.prompt, cfg) for g in groups]
-            gen = torch.Generator().manual_seed(int(np.random.SeedSequence([rc.seed, it, 1]).generate_state(1)[0]))
-            stats = learner.update(groups, conds, gen)
-            t2 = time.perf_counter()
+            if buf is None:  # synchronous, or the first buffer of an overlapped run
+                buf = self._collect(it, self._publish(policy, it))
+            nxt, idle_s = None, buf["seconds"]  # synchronous: the learner waits while the buffer is sampled
+            if rc.overlap and it + 1 < rc.iterations:
+                # the next buffer samples with these weights (version it) while the learner moves to it + 1:
+                # its groups arrive one version behind (PPO's ratio to the behaviour policy accounts for that)
+                shared = self._publish(policy, it)
+                with ThreadPoolExecutor(1) as pool:
+                    job = pool.submit(self._learn, it, buf, learner, cfg)
+                    nxt = self._collect(it + 1, shared)
+                    stats = job.result()
+                # the learner waits only for what is left of the next buffer when it is done
+                idle_s = max(0.0, nxt["seconds"] - stats["_seconds"]) + (buf["seconds"] if it == start else 0.0)
+            else:
+                stats = self._learn(it, buf, learner, cfg)
+            learn_s = stats.pop("_seconds")
+            groups = buf["groups"]
             hard.add([g.prompt for g in groups], [difficulty(g.terms["hard"], g.rewards) for g in groups])
-            rewards = np.stack([g.rewards for g in groups])
-            hard_v = np.concatenate([g.terms["hard"] for g in groups])
-            metrics = stats | {
-                "rollout/reward_mean": float(rewards.mean()), "rollout/reward_std": float(rewards.std()),
-                "rollout/constraint_ok_frac": float(1 - hard_v.mean()),
-                "rollout/obs_violation_frac": float(np.concatenate([g.terms["obs"] for g in groups]).mean()),
-                "rollout/inter_violation_frac": float(np.concatenate([g.terms["inter"] for g in groups]).mean()),
-                "rollout/disconnect_frac": float(np.concatenate([g.terms["conn"] for g in groups]).mean()),
-                "rollout/reach_frac": float(np.concatenate([g.terms["reach"] for g in groups]).mean()),
-                "rollout/hard_prompt_frac": n_hard / max(len(prompts), 1), "rollout/groups": len(groups),
-                "rollout/stale_groups": stale, "rollout/failed_units": failed,
-                "charts/weight_version_lag": float(np.mean([version - g.version for g in groups])),
-                "charts/candidates_per_s": len(groups) * rc.group_size / max(t1 - t0, 1e-9),
-                "time/rollout_s": t1 - t0, "time/learn_s": t2 - t1}
+            metrics = stats | self._rollout_metrics(buf, it) | {
+                "time/rollout_s": buf["seconds"], "time/learn_s": learn_s, "time/learner_idle_s": idle_s}
             log.log(it + 1, metrics)
             history.append(metrics)
             done = it + 1 - start
+            stale = f", {buf['stale']} stale" if buf["stale"] else ""
             eta = (time.perf_counter() - t_start) / done * (rc.iterations - it - 1)
             log.print(f"[posttrain] iteration {it + 1}/{rc.iterations} reward {metrics['rollout/reward_mean']:.2f} "
                       f"(std {metrics['rollout/reward_std']:.2f}) ok {metrics['rollout/constraint_ok_frac']:.3f} "
                       f"reach {metrics['rollout/reach_frac']:.3f} | kl {stats['losses/kl_ref']:.2e} approx_kl "
                       f"{stats['losses/approx_kl']:.2e} clipfrac {stats['losses/clipfrac']:.3f} | rollout "
-                      f"{t1 - t0:.1f} s ({metrics['charts/candidates_per_s']:.1f} cand/s), learn {t2 - t1:.1f} s"
-                      f"{f', {stale} stale' if stale else ''}, ETA {duration(eta)}")
+                      f"{buf['seconds']:.1f} s ({metrics['charts/candidates_per_s']:.1f} cand/s), learn {learn_s:.1f} s"
+                      f"{stale}, ETA {duration(eta)}")
             if (it + 1) % rc.checkpoint_every == 0 or it + 1 == rc.iterations:
                 self._save(it + 1, policy, learner, hard)
+            buf = nxt
         self.runner.shutdown()
         log.close()
         first = history[0] if history else {}
@@ -165,6 +146,57 @@ class PostTraining:
                    "checkpoint": str(self.out / ckpt.checkpoint_name(rc.iterations))}
         atomic_write_json(summary, self.out / "summary.json")
         return summary
+
+    def _publish(self, policy, version: int):
+        return self.runner.publish({k: v.detach().cpu().clone() for k, v in policy.state_dict().items()}, version)
+
+    def _collect(self, it: int, shared) -> dict:
+        """One buffer: the iteration's prompts (hard ones with probability rl.hard_prompt_prob) sampled by the
+        rollout workers with the weights in `shared`; groups of an older version are dropped and counted."""
+        rc, t0 = self.rc, time.perf_counter()
+        rng = np.random.default_rng([rc.seed, it])
+        n_hard = int(rng.binomial(rc.prompts_per_iteration, rc.hard_prompt_prob)) if len(self._hard) else 0
+        prompts = self._hard.draw(n_hard) + self._source.draw(rng, rc.prompts_per_iteration - n_hard)
+        k = self.prompts_per_unit
+        units = [Unit(f"it{it:04d}-u{j // k:04d}", {"prompts": prompts[j:j + k], "weights": shared},
+                      size=len(prompts[j:j + k])) for j in range(0, len(prompts), k)]
+        groups, stale, failed = [], 0, 0
+        for r in self.runner.imap_unordered(UNIT_FN, self._ctx, units):
+            if not r.ok:
+                failed += 1
+                self._log.print(f"[posttrain] unit {r.unit.key} failed: {r.error}")
+                continue
+            for g in r.value:
+                if g.version < shared.version:
+                    stale += 1
+                    continue
+                groups.append(g)
+        if not groups:
+            raise RuntimeError(f"iteration {it}: every rollout unit failed (errors above)")
+        groups.sort(key=lambda g: g.prompt)  # the learner's order does not depend on which actor was first
+        return {"groups": groups, "stale": stale, "failed": failed, "hard": n_hard, "prompts": len(prompts),
+                "version": shared.version, "seconds": time.perf_counter() - t0}
+
+    def _learn(self, it: int, buf: dict, learner: Learner, cfg) -> dict:
+        t0 = time.perf_counter()
+        conds = [condition(self._bank, g.prompt, cfg) for g in buf["groups"]]
+        gen = torch.Generator().manual_seed(int(np.random.SeedSequence([self.rc.seed, it, 1]).generate_state(1)[0]))
+        stats = learner.update(buf["groups"], conds, gen)
+        return stats | {"_seconds": time.perf_counter() - t0}
+
+    def _rollout_metrics(self, buf: dict, it: int) -> dict:
+        groups = buf["groups"]
+        cat = lambda key: np.concatenate([g.terms[key] for g in groups])  # noqa: E731
+        rewards = np.stack([g.rewards for g in groups])
+        return {"rollout/reward_mean": float(rewards.mean()), "rollout/reward_std": float(rewards.std()),
+                "rollout/constraint_ok_frac": float(1 - cat("hard").mean()),
+                "rollout/obs_violation_frac": float(cat("obs").mean()),
+                "rollout/inter_violation_frac": float(cat("inter").mean()),
+                "rollout/disconnect_frac": float(cat("conn").mean()), "rollout/reach_frac": float(cat("reach").mean()),
+                "rollout/hard_prompt_frac": buf["hard"] / max(buf["prompts"], 1), "rollout/groups": len(groups),
+                "rollout/stale_groups": buf["stale"], "rollout/failed_units": buf["failed"],
+                "charts/weight_version_lag": float(np.mean([it - g.version for g in groups])),
+                "charts/candidates_per_s": len(groups) * self.rc.group_size / max(buf["seconds"], 1e-9)}
 
     def _save(self, iteration: int, policy, learner: Learner, hard: HardPrompts) -> None:
         weights = {k: v.detach().cpu().clone() for k, v in policy.state_dict().items()}
