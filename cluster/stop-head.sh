@@ -13,9 +13,11 @@ alive() {  # processes of the group that still run (zombies waiting for their pa
     ps -eo pgid=,stat= | awk -v g="$PGID" '$1 == g && $2 !~ /^Z/ {n++} END {exit n == 0}'
 }
 # SIGTERM to `ray start --block` drains the node and stops its processes in order (a few seconds; signalling
-# the whole group at once makes them wait on each other instead). Whatever is left after 40 s is killed.
+# the whole group at once makes them wait on each other instead). Whatever is left after RAY_STOP_GRACE
+# seconds (default 40) is killed.
+GRACE=${RAY_STOP_GRACE:-40}
 kill -TERM "$PGID" 2>/dev/null || true
-for _ in $(seq 1 80); do
+for _ in $(seq 1 $((GRACE * 2))); do
     if ! alive; then
         rm -f "$PID_FILE"
         echo "stopped the Ray head (process group $PGID)"
@@ -25,4 +27,4 @@ for _ in $(seq 1 80); do
 done
 kill -KILL -- "-$PGID" 2>/dev/null || true
 rm -f "$PID_FILE"
-echo "killed the Ray head (process group $PGID) after 40 s"
+echo "stopped the Ray head (process group $PGID): killed after ${GRACE} s"

@@ -36,8 +36,9 @@ def head():
     env["GCS"] = f"127.0.0.1:{gcs}"
     env["JOBS"] = f"http://127.0.0.1:{dash}"
     yield env
-    r = subprocess.run(["bash", str(ROOT / "cluster" / "stop-head.sh")], env=env, capture_output=True, text=True,
-                       timeout=120)
+    # a test cluster need not drain: what is still up after 5 s is killed (the script's default waits 40 s)
+    r = subprocess.run(["bash", str(ROOT / "cluster" / "stop-head.sh")], env=env | {"RAY_STOP_GRACE": "5"},
+                       capture_output=True, text=True, timeout=120)
     shutil.rmtree(head_dir, ignore_errors=True)
     assert "stopped the Ray head" in r.stdout, r.stdout + r.stderr
 
@@ -91,6 +92,20 @@ def test_job_submit_pretrains_with_two_ddp_workers(head, tmp_path, expert_datase
     assert "succeeded" in r.stdout + r.stderr and "2 x 2 worker(s)" in r.stdout + r.stderr
     cfg = json.loads((out / "checkpoint-0000002" / "config.json").read_text())
     assert cfg["world_size"] == 2 and "runtime_resources" in cfg["code_version"]["path"]
+
+
+def test_one_ray_train_worker_matches_the_in_process_first_step(head, tmp_path, expert_dataset):
+    tiny = ["--data", expert_dataset, "--preset", "tiny", "--steps", "1", "--batch-size", "8", "--set",
+            "train.loader_workers=0", "--set", "train.log_every=1", "--set", "train.val_fraction=0.34",
+            "--set", "train.val_prompts=2"]
+    local = pipeline("pretrain.py", tiny + ["--out", str(tmp_path / "local"), "--workers", "0"], head)
+    assert local.returncode == 0, local.stderr[-2000:]
+    remote = pipeline("pretrain.py", tiny + ["--out", str(tmp_path / "ray"), "--address", head["GCS"],
+                                             "--workers", "1"], head)
+    assert remote.returncode == 0, remote.stderr[-3000:]
+    a, b = (json.loads((tmp_path / d / "metrics.jsonl").read_text().splitlines()[0]) for d in ("local", "ray"))
+    assert a["losses/total"] == pytest.approx(b["losses/total"], rel=1e-6)
+    assert a["losses/traj"] == pytest.approx(b["losses/traj"], rel=1e-6)
 
 
 def test_wrong_or_missing_token_and_no_cluster_are_named(head, tmp_path):

@@ -165,12 +165,15 @@ def test_two_rollout_actors_with_one_killed_lose_no_group(tiny_ckpt, expert_data
     args = ["--checkpoint", tiny_ckpt, "--data", expert_dataset, "--iterations", "1"] + \
         [a for k, v in SMALL.items() for a in ("--set", f"rl.{k}={v}")] + ["--prompts-per-unit", "1"]
     cmd = [sys.executable, str(ROOT / "pipelines" / "posttrain.py")]
-    one_thread = os.environ | {"OMP_NUM_THREADS": "1"}  # as Ray actors run: the same floating-point sums
-    ref = subprocess.run(cmd + args + ["--out", str(tmp_path / "ref"), "--workers", "0"], capture_output=True,
-                         text=True, timeout=300, env=one_thread)
-    assert ref.returncode == 0, ref.stderr
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as the Ray actors and the driver below run: the same floating-point sums
+    try:
+        PostTraining(RLConfig(**SMALL | {"iterations": 1}), TaskConfig(), tiny_ckpt, expert_dataset, tmp_path / "ref",
+                     InProcessRunner(), prompts_per_unit=1).fit()
+    finally:
+        torch.set_num_threads(threads)
     marker = tmp_path / "killed"
-    env = one_thread | {"RAY_TMPDIR": ray_tmp, "ROKEN_KILL_ROLLOUT": str(marker)}
+    env = os.environ | {"OMP_NUM_THREADS": "1", "RAY_TMPDIR": ray_tmp, "ROKEN_KILL_ROLLOUT": str(marker)}
     r = subprocess.run(cmd + args + ["--out", str(tmp_path / "ray"), "--local", "--workers", "2", "--num-cpus", "2"],
                        capture_output=True, text=True, timeout=600, env=env)
     assert r.returncode == 0, r.stderr

@@ -101,10 +101,10 @@ def test_ctrl_c_during_generate_records_the_state_and_resumes(tmp_path):
     import time
 
     out = tmp_path / "ds"
-    cmd = [sys.executable, str(ROOT / "pipelines" / "generate.py"), "--maps", "train", "--num-maps", "32",
+    cmd = [sys.executable, str(ROOT / "pipelines" / "generate.py"), "--maps", "train", "--num-maps", "16",
            "--episodes-per-map", "1", "--workers", "0", "--set", "dataset.maps_per_unit=1",
            "--set", "dataset.team_sizes={2: 1}", "--out", str(out)]
-    # 32 one-map units run one after another in-process, so the SIGINT sent when the first file appears lands
+    # 16 one-map units run one after another in-process, so the SIGINT sent when the first file appears lands
     # long before the last unit is done, even on a loaded machine
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 120

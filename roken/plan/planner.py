@@ -13,7 +13,6 @@ mapped back. `sample` is the batched core the closed-loop rollout and GRPO use: 
 """
 from __future__ import annotations
 
-import json
 from contextlib import nullcontext
 from pathlib import Path
 

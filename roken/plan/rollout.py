@@ -143,7 +143,7 @@ class RokenRollout:
         if any(t.num_robots != N for t in tasks):
             raise ValueError("RokenRollout.run takes tasks of one team size; group them first")
         check(self.pc, self.planner, N)
-        pc, tc, cfg = self.pc, self.tc, self.planner.cfg
+        pc = self.pc
         pending = list(range(len(tasks)))[::-1]
         slots: list[_Slot | None] = [None] * min(pc.batch_size, len(tasks))
 
