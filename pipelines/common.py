@@ -25,6 +25,16 @@ sys.path.insert(0, str(ROOT))  # run from a checkout (or a job's uploaded workin
 from roken.units import InProcessRunner, in_ray_job  # noqa: E402
 
 
+# What a user's input can get wrong: ConfigError, StoreError, CheckpointError and MapError are ValueErrors, a
+# cluster that cannot be reached is a ConnectionError (an OSError). Pipelines print these as one line, exit 2.
+USER_ERRORS = (ValueError, OSError)
+
+
+def fail(e: Exception) -> int:
+    print(f"error: {e}", file=sys.stderr)
+    return 2
+
+
 def add_common_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--config", help="YAML config file (see configs/)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

@@ -16,12 +16,10 @@ from __future__ import annotations
 import argparse
 import sys
 
-from common import add_common_args, explain_relative_out, make_runner, named_overrides
+from common import USER_ERRORS, add_common_args, explain_relative_out, fail, make_runner, named_overrides
 
-from roken.config import ConfigError, load_config
-from roken.data.store import StoreError
+from roken.config import load_config
 from roken.eval.harness import check, evaluate, load_model, uses_roken
-from roken.train.checkpoint import CheckpointError
 
 
 def parser() -> argparse.ArgumentParser:
@@ -77,9 +75,8 @@ def main(argv=None) -> int:
         if gpus is None:
             gpus = -1 if uses_roken(cfg.eval) and cfg.plan.device != "cpu" else 0  # -1: 1 if the cluster has GPUs
         metrics = evaluate(cfg, args.out, make_runner(args, gpus_per_worker=gpus), overwrite=args.overwrite)
-    except (ConfigError, StoreError, CheckpointError, ValueError, OSError, ConnectionError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    except USER_ERRORS as e:
+        return fail(e)
     return 1 if metrics["failures"] else 0
 
 

@@ -13,13 +13,11 @@ from __future__ import annotations
 import argparse
 import sys
 
-from common import add_common_args, explain_relative_out, make_runner, named_overrides
+from common import USER_ERRORS, add_common_args, explain_relative_out, fail, make_runner, named_overrides
 
-from roken.config import ConfigError, load_config
+from roken.config import load_config
 from roken.data.build import Interrupted, build_dataset, parse_shard
 from roken.data.generation import check
-from roken.data.store import StoreError
-from roken.world.loaders import MapError
 
 
 def parser() -> argparse.ArgumentParser:
@@ -54,9 +52,8 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("[generate] interrupted while starting; re-run the same command", file=sys.stderr)
         return 130
-    except (ConfigError, StoreError, MapError, ValueError, OSError, ConnectionError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    except USER_ERRORS as e:
+        return fail(e)
     if shard is not None:
         return 0 if not manifest["failures"] else 1
     return 0 if manifest["status"] == "complete" else 1

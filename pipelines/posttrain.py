@@ -19,14 +19,12 @@ import os
 import sys
 from pathlib import Path
 
-from common import add_common_args, explain_relative_out, make_runner, named_overrides
+from common import USER_ERRORS, add_common_args, explain_relative_out, fail, make_runner, named_overrides
 
-from roken.config import ConfigError, load_config
+from roken.config import load_config
 from roken.configtools import with_overrides
-from roken.data.store import StoreError
 from roken.rl.config import check
 from roken.rl.loop import PostTraining, summary_table
-from roken.train.checkpoint import CheckpointError
 from roken.train.data import check_dataset
 
 
@@ -87,9 +85,8 @@ def main(argv=None) -> int:
         print(summary_table(summary))
         if cfg.rl.eval_episodes > 0:
             print(before_after(cfg, pt.blob["path"], out, cfg.rl.eval_episodes, args))
-    except (ConfigError, StoreError, CheckpointError, ValueError, OSError, ConnectionError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    except USER_ERRORS as e:
+        return fail(e)
     return 0
 
 

@@ -21,9 +21,9 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
-from common import ROOT, add_common_args, explain_relative_out, named_overrides, wants_ray
+from common import ROOT, USER_ERRORS, add_common_args, explain_relative_out, fail, named_overrides, wants_ray
 
-from roken.config import ConfigError, load_config
+from roken.config import load_config
 from roken.configtools import from_dict, to_dict
 from roken.data.build import changed_keys
 from roken.data.store import StoreError
@@ -131,9 +131,8 @@ def main(argv=None) -> int:
         else:
             Pretraining(PretrainSpec.of(cfg), args.data, out, args.val_data).fit()
         summary = json.loads((Path(out) / "summary.json").read_text())
-    except (ConfigError, StoreError, ckpt.CheckpointError, ValueError, OSError, ConnectionError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    except USER_ERRORS as e:
+        return fail(e)
     print(summary_table(summary))
     return 0
 

@@ -10,13 +10,11 @@ from __future__ import annotations
 import argparse
 import sys
 
-from common import add_common_args, explain_relative_out, make_runner
+from common import USER_ERRORS, add_common_args, explain_relative_out, fail, make_runner
 
-from roken.config import ConfigError, load_config
-from roken.data.store import StoreError
+from roken.config import load_config
 from roken.eval.harness import check, load_model
 from roken.eval.sweeps import SWEEPS, run_sweep
-from roken.train.checkpoint import CheckpointError
 
 
 def main(argv=None) -> int:
@@ -42,9 +40,8 @@ def main(argv=None) -> int:
         for name in names:
             run_sweep(cfg, name, args.out, blob["config"]["samples"]["max_robots"], runner)
             print(open(f"{args.out}/{name}.md").read())
-    except (ConfigError, StoreError, CheckpointError, ValueError, OSError, ConnectionError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    except USER_ERRORS as e:
+        return fail(e)
     return 0
 
 

@@ -51,6 +51,16 @@ class PlanConfig:
     record_plans: bool = True  # store each re-plan's chunk with the episode (for the GIF)
 
 
+def step_toward(q: np.ndarray, prev: np.ndarray, target: np.ndarray, k: int, interval: int,
+                max_step: float) -> np.ndarray:
+    """Simulator step k (1..interval) of the chunk move prev -> target from positions q (..., 2): toward the
+    point k / interval of the way, clipped by its norm (never per component) 0.1 mm inside max_step, so that
+    the stored float32 positions (what the metrics read) never step further."""
+    d = prev + (target - prev) * (k / interval) - q
+    norm = np.linalg.norm(d, axis=-1, keepdims=True)
+    return d * np.minimum(1.0, (max_step - 1e-4) / np.maximum(norm, 1e-12))
+
+
 def check(pc: PlanConfig, planner: RokenPlanner | None = None, team_size: int | None = None) -> None:
     """Flags checked before anything runs, naming the flag."""
     if pc.replan_every < 1:
@@ -189,7 +199,7 @@ class _Slot:
         self.padded_known = gm.padded
         self.geodesic = None
         if ro.pc.select == "geodesic" and not ro.pc.sensing_range:
-            self.geodesic = geodesic_field(gm.occupancy, task.goal)
+            self.geodesic = geodesic_field(gm.occupancy, task.goal, gm.free_graph)
 
     @property
     def finished(self) -> bool:
@@ -218,11 +228,7 @@ class _Slot:
         leader, goal = self.task.leader, np.asarray(self.task.goal, np.float64)
         for j in range(pc.replan_every):
             for k in range(1, cfg.interval + 1):
-                d = prev + (plan[:, j] - prev) * (k / cfg.interval) - self.q
-                norm = np.linalg.norm(d, axis=-1, keepdims=True)
-                # clip by the norm (never per component), 0.1 mm inside max_step so that the stored float32
-                # positions (what the metrics read) never step further; the state is the stored value
-                step = d * np.minimum(1.0, (tc.max_step - 1e-4) / np.maximum(norm, 1e-12))
+                step = step_toward(self.q, prev, plan[:, j], k, cfg.interval, tc.max_step)
                 self.hist.append((self.q + step).astype(np.float32))
                 self.q = self.hist[-1].astype(np.float64)
                 # the metric's reach test on the stored (float32) positions

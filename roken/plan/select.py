@@ -40,14 +40,16 @@ def violations(paths: np.ndarray, padded: np.ndarray, others: np.ndarray | None,
     return obs + inter + disc
 
 
-def geodesic_field(known_occupancy: np.ndarray, goal: np.ndarray) -> np.ndarray:
-    """(H, W) octile distance to the goal's cell over the known free cells (inf on obstacles / unreachable)."""
-    graph = GridGraph.build(known_occupancy == 0)
+def geodesic_field(known_occupancy: np.ndarray, goal: np.ndarray, graph: GridGraph | None = None) -> np.ndarray:
+    """(H, W) octile distance to the goal's cell over the known free cells (inf on obstacles / unreachable);
+    `graph`: the free-cell graph of known_occupancy when one is already built (GridMap.free_graph)."""
+    graph = graph or GridGraph.build(known_occupancy == 0)
     src = graph.nearest_node(np.asarray(goal, np.float64), search_all=True)
     return graph.field_grid(src) if src >= 0 else np.full(known_occupancy.shape, np.inf)
 
 
-def _lookup(field: np.ndarray, pts: np.ndarray) -> np.ndarray:
+def lookup(field: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Values of a cell field (H, W) at the cells of points pts (..., 2), clamped to the grid."""
     H, W = field.shape
     r = np.clip(np.floor(pts[..., 1]).astype(int), 0, H - 1)
     c = np.clip(np.floor(pts[..., 0]).astype(int), 0, W - 1)
@@ -58,7 +60,7 @@ def progress(start: np.ndarray, ends: np.ndarray, goal: np.ndarray, field: np.nd
     """(G,) leader progress from start (2,) to ends (G, 2): straight-line, or along `field` (geodesic)."""
     if field is None:
         return np.linalg.norm(start - goal) - np.linalg.norm(ends - goal, axis=-1)
-    d0, d1 = _lookup(field, start), _lookup(field, ends)
+    d0, d1 = lookup(field, start), lookup(field, ends)
     out = np.where(np.isfinite(d1), (d0 if np.isfinite(d0) else 0.0) - d1, -1e9)
     return out.astype(np.float64)
 

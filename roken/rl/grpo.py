@@ -20,10 +20,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from ..model.diffusion import COND_KEYS, NoiseSchedule, make_prompt
+from ..model.diffusion import NoiseSchedule
 from ..model.dit import RokenDiT
 from .config import RLConfig
-from .policy import mean_kl, mean_logprob, policy_mean
+from .policy import group_prompt, mean_kl, mean_logprob, policy_mean
 
 
 @dataclass
@@ -61,17 +61,13 @@ class Learner:
         self.policy.eval()
         self.opt = torch.optim.AdamW(policy.parameters(), lr=rc.lr, weight_decay=rc.weight_decay)
 
-    def _prompt(self, model: RokenDiT, cond: dict, G: int):
-        t = {k: torch.from_numpy(np.asarray(cond[k]))[None].to(self.device) for k in COND_KEYS + ("map", "chunk")}
-        return make_prompt(model, {k: t[k] for k in COND_KEYS + ("map",)}, t["chunk"], G)
-
     def group_loss(self, g: Group, cond: dict, adv: np.ndarray) -> tuple[torch.Tensor, dict]:
         """The loss of one group (a scalar with gradients) and its statistics."""
         rc, dev = self.rc, self.device
         G = len(adv)
-        prompt = self._prompt(self.policy, cond, G)
+        prompt = group_prompt(self.policy, cond, G, dev)
         with torch.no_grad():
-            ref_prompt = self._prompt(self.ref, cond, G)
+            ref_prompt = group_prompt(self.ref, cond, G, dev)
         A = torch.from_numpy(adv).to(dev)
         total, stats = 0.0, {"policy": 0.0, "kl": 0.0, "approx_kl": 0.0, "clipfrac": 0.0, "ratio_dev": 0.0}
         for j, k in enumerate(g.steps):

@@ -22,8 +22,17 @@ from dataclasses import dataclass
 
 import torch
 
-from ..model.diffusion import NoiseSchedule, Prompt
+import numpy as np
+
+from ..model.diffusion import COND_KEYS, NoiseSchedule, Prompt, make_prompt
 from ..model.dit import RokenDiT
+
+
+def group_prompt(model: RokenDiT, cond: dict, G: int, device) -> Prompt:
+    """One condition (build_condition's arrays) as a G-candidate prompt: the rollout worker and the learner build
+    their batches the same way, so the learner's first ratio is exactly 1."""
+    t = {k: torch.from_numpy(np.asarray(cond[k]))[None].to(device) for k in COND_KEYS + ("map", "chunk")}
+    return make_prompt(model, {k: t[k] for k in COND_KEYS + ("map",)}, t["chunk"], G)
 
 
 def trained_steps(K: int, count: int, how: str = "last", skip_final: bool = True,

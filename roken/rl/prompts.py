@@ -10,9 +10,8 @@ import numpy as np
 
 from ..data.condition import build_condition
 from ..data.samples import EpisodeBank, SampleConfig
-from ..world.geometry import clearance, pad_for_clearance
-from ..world.graph import connected
-from ..world.tasks import TaskConfig
+from ..world.grid import GridMap
+from ..world.tasks import TaskConfig, check_start
 
 
 def state(bank: EpisodeBank, prompt: tuple[int, int]) -> tuple[np.ndarray, int, np.ndarray, int]:
@@ -26,18 +25,6 @@ def condition(bank: EpisodeBank, prompt: tuple[int, int], cfg: SampleConfig) -> 
     """The model's inputs for a prompt, with one token per robot of the team."""
     pos, leader, goal, m = state(bank, prompt)
     return build_condition(bank.occupancy[m], pos, leader, goal, cfg, tokens=len(pos))
-
-
-def feasible(occupancy_padded: np.ndarray, positions: np.ndarray, tc: TaskConfig) -> bool:
-    p = np.asarray(positions, np.float64)
-    if (clearance(occupancy_padded, p) < tc.d_obs_min).any():
-        return False
-    if len(p) < 2:
-        return True
-    d = np.linalg.norm(p[:, None] - p[None], axis=-1)
-    if (d[~np.eye(len(p), dtype=bool)] < tc.d_coll_min).any():
-        return False
-    return bool(connected(d[None], tc.comm_radius)[0])
 
 
 class PromptSource:
@@ -58,7 +45,7 @@ class PromptSource:
                              f"{f' and at most {max_robots} robots' if max_robots else ''}; lower rl.min_future or "
                              f"use a dataset with longer episodes (team sizes present: "
                              f"{sorted(set(bank.num_robots.tolist()))}, longest {int(bank.num_steps.max())} steps)")
-        self._padded: dict[int, np.ndarray] = {}
+        self._maps: dict[int, GridMap] = {}
 
     def draw(self, rng: np.random.Generator, count: int, tries: int = 20) -> list[tuple[int, int]]:
         out = []
@@ -67,9 +54,9 @@ class PromptSource:
             for _ in range(tries):
                 t = int(rng.integers(0, int(self.bank.num_steps[i]) - self.min_future + 1))
                 pos, _, _, m = state(self.bank, (i, t))
-                if m not in self._padded:
-                    self._padded[m] = pad_for_clearance(self.bank.occupancy[m])
-                if feasible(self._padded[m], pos, self.tc):
+                if m not in self._maps:
+                    self._maps[m] = GridMap(self.bank.map_ids[m], self.bank.occupancy[m])
+                if check_start(self._maps[m], pos, self.tc) is None:  # the task's own start constraints
                     out.append((i, t))
                     break
         return out

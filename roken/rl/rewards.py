@@ -26,6 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..expert.reference import leader_reference
+from ..plan.rollout import step_toward
+from ..plan.select import geodesic_field, lookup
 from ..world.geometry import clearance
 from ..world.graph import connected
 from ..world.grid import GridMap
@@ -47,9 +49,8 @@ class Privileged:
 
 
 def geodesic_to(gm: GridMap, goal: np.ndarray) -> np.ndarray:
-    g = gm.free_graph
-    src = g.nearest_node(np.asarray(goal, np.float64), search_all=True)
-    return g.field_grid(src) if src >= 0 else np.full(gm.shape, np.inf)
+    """Octile distance to the goal on the true map (the free-cell graph GridMap keeps)."""
+    return geodesic_field(gm.occupancy, goal, gm.free_graph)
 
 
 def privileged(gm: GridMap, positions: np.ndarray, leader: int, goal: np.ndarray, reach: float,
@@ -67,28 +68,17 @@ def privileged(gm: GridMap, positions: np.ndarray, leader: int, goal: np.ndarray
 
 def simulate(start: np.ndarray, plan: np.ndarray, interval: int, max_step: float) -> np.ndarray:
     """Simulator positions of chunks plan (G, n, H, 2) from start (n, 2): (G, H * interval + 1, n, 2), start
-    first; each step heads for the point k / interval of the way along its move, clipped to max_step by the norm
-    (as roken.plan.rollout executes a plan)."""
+    first, stepped exactly as roken.plan.rollout executes a plan."""
     G, n, H, _ = plan.shape
     q = np.broadcast_to(np.asarray(start, np.float64), (G, n, 2)).copy()
-    out = [q.copy()]
-    prev = q.copy()
+    out, prev = [q.copy()], q.copy()
     for j in range(H):
         target = plan[:, :, j].astype(np.float64)
         for k in range(1, interval + 1):
-            d = prev + (target - prev) * (k / interval) - q
-            norm = np.linalg.norm(d, axis=-1, keepdims=True)
-            q = q + d * np.minimum(1.0, (max_step - 1e-4) / np.maximum(norm, 1e-12))
+            q = q + step_toward(q, prev, target, k, interval, max_step)
             out.append(q.copy())
         prev = target
     return np.stack(out, axis=1)
-
-
-def _lookup(field: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    H, W = field.shape
-    r = np.clip(np.floor(pts[..., 1]).astype(int), 0, H - 1)
-    c = np.clip(np.floor(pts[..., 0]).astype(int), 0, W - 1)
-    return field[r, c]
 
 
 def score(plan: np.ndarray, start: np.ndarray, info: Privileged, tc: TaskConfig, rc: RLConfig,
@@ -114,8 +104,8 @@ def score(plan: np.ndarray, start: np.ndarray, info: Privileged, tc: TaskConfig,
         inter_hard = conn_hard = np.zeros(G, bool)
         c_inter = c_conn = np.zeros(G)
     lead = q[:, :, info.leader]  # (G, S+1, 2)
-    g0 = _lookup(info.geodesic, lead[:1, 0])[0]
-    g1 = _lookup(info.geodesic, lead[:, -1])
+    g0 = lookup(info.geodesic, lead[:1, 0])[0]
+    g1 = lookup(info.geodesic, lead[:, -1])
     full = H * interval * tc.max_step
     g0 = g0 if np.isfinite(g0) else np.linalg.norm(lead[0, 0] - info.goal)
     g1 = np.where(np.isfinite(g1), g1, g0 + full)  # ending inside an obstacle counts as full speed backwards

@@ -17,13 +17,12 @@ import torch
 
 from ..data.condition import decode_chunk
 from ..data.samples import EpisodeBank
-from ..model.diffusion import COND_KEYS, make_prompt
 from ..plan.planner import RokenPlanner
 from ..world.grid import GridMap
 from ..world.tasks import TaskConfig
 from .config import RLConfig
 from .grpo import Group
-from .policy import sample_recorded, trained_steps
+from .policy import group_prompt, sample_recorded, trained_steps
 from .prompts import condition, state
 from .rewards import geodesic_to, privileged, score
 
@@ -58,8 +57,7 @@ class RolloutWorker:
         rc, cfg, dev = self.rc, self.cfg, self.planner.device
         G = rc.group_size
         cond = condition(self.bank, prompt, cfg)
-        t = {k: torch.from_numpy(np.asarray(cond[k]))[None].to(dev) for k in COND_KEYS + ("map", "chunk")}
-        p = make_prompt(self.model, {k: t[k] for k in COND_KEYS + ("map",)}, t["chunk"], G)
+        p = group_prompt(self.model, cond, G, dev)
         gen = torch.Generator().manual_seed(prompt_seed(rc.seed, self.version, prompt))
         steps = trained_steps(self.sched.K, rc.train_transitions, rc.transitions, rc.skip_final, gen)
         rec = sample_recorded(self.model, self.sched, p, steps, gen)
