@@ -9,6 +9,9 @@ step   optimizer steps/s x batch on pre-made batches (forward, backward, clip, A
        fp32 on CPU, bf16 autocast on CUDA
 data   samples/s of the per-worker DataLoader (SampleStream, 0..2 loader processes) and of Ray Data
        (read_parquet -> map_batches(EpisodeBatchToSamples) -> iter_torch_batches)
+draws  draws/s per core (decoder rows: samples x train.noise_draws) of the `small` preset at K = 1, 4, 8, 16,
+       of the laptop encoder options, and of the shipped recipe (configs/pretrain/cpu.yaml), one thread each;
+       ends with `recipe speed-up vs small K=1: X.XXx`
 ray    pipelines/pretrain.py on a --local cluster with 1 and 2 workers at the same per-worker batch (weak
        scaling); steady samples/s from metrics.jsonl, parallel efficiency = rate(2) / (2 rate(1))
 """
@@ -34,10 +37,12 @@ from roken.train.loop import Pretraining, PretrainSpec
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def bench_step(data: str, name: str, batch: int, device: str, compile_: bool, steps: int) -> float:
-    cfg = load_config(None, [f"model.{k}={v}" for k, v in preset(name).__dict__.items()] +
-                      [f"train.batch_size={batch}", f"train.device={device}", f"train.compile={compile_}",
-                       "train.val_fraction=0"])
+def bench_step(data: str, name: str, batch: int, device: str, compile_: bool, steps: int,
+               extra: list[str] | None = None, config: str | None = None) -> float:
+    """Samples/s of optimizer steps on one pre-made batch (no data loading)."""
+    pre = [] if name is None else [f"model.{k}={v}" for k, v in preset(name).__dict__.items()]
+    cfg = load_config(config, pre + [f"train.batch_size={batch}", f"train.device={device}",
+                                     f"train.compile={compile_}", "train.val_fraction=0"] + (extra or []))
     run = Pretraining(PretrainSpec.of(cfg), data, tempfile.mkdtemp(prefix="bench-"))
     run._build()
     stream = SampleStream(run.train_bank, cfg.samples)
@@ -51,6 +56,29 @@ def bench_step(data: str, name: str, batch: int, device: str, compile_: bool, st
         logs = run.train_step(b)
     float(logs["losses/total"])  # waits for the device
     return steps * batch / (time.perf_counter() - t)
+
+
+def bench_draws(data: str, steps: int) -> None:
+    """Draws/s per core (one thread): K noise draws per encoded sample, the encoders, the shipped recipe."""
+    torch.set_num_threads(1)
+    print("\n| variant | batch x K | draws/s per core |\n| --- | --- | --- |")
+    rows = [("small K=1", "small", 32, ["train.noise_draws=1"], None)]
+    rows += [(f"small K={k}", "small", 32 // min(k, 8), [f"train.noise_draws={k}"], None) for k in (4, 8, 16)]
+    rows += [("small patch encoder K=1", "small", 32, ["model.map_encoder=patch"], None),
+             ("small patch encoder + crop K=8", "small", 8, ["model.map_encoder=patch", "model.local_crop=9",
+                                                             "train.noise_draws=8"], None)]
+    rows += [("shipped recipe (configs/pretrain/cpu.yaml)", None, None, [], str(ROOT / "configs/pretrain/cpu.yaml"))]
+    rates = {}
+    for label, name, batch, extra, config in rows:
+        if config is not None:
+            from roken.config import load_config as _lc
+            c = _lc(config, [])
+            batch, k = c.train.batch_size, c.train.noise_draws
+        else:
+            k = int(next(x for x in extra + ["train.noise_draws=1"] if x.startswith("train.noise_draws")).split("=")[1])
+        rates[label] = bench_step(data, name, batch, "cpu", False, steps, extra, config) * k
+        print(f"| {label} | {batch} x {k} | {rates[label]:.0f} |", flush=True)
+    print(f"recipe speed-up vs small K=1: {rates[rows[-1][0]] / rates['small K=1']:.2f}x")
 
 
 def bench_loader(data: str, workers: int, batch: int, batches: int) -> float:
@@ -105,7 +133,7 @@ def bench_ray_train(data: str, name: str, per_worker: int, steps: int, workers: 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True)
-    ap.add_argument("--only", choices=("step", "data", "ray"))
+    ap.add_argument("--only", choices=("step", "data", "ray", "draws"))
     ap.add_argument("--presets", default="tiny,small,paper")
     ap.add_argument("--batch", type=int, default=32)
     ap.add_argument("--steps", type=int, default=10)
@@ -121,6 +149,8 @@ def main() -> None:
         for name in args.presets.split(","):
             rate = bench_step(args.data, name, args.batch, args.device, args.compile, args.steps)
             print(f"| {name} | {args.batch} | {args.device}{' compiled' if args.compile else ''} | {rate:.1f} |")
+    if args.only in (None, "draws"):
+        bench_draws(args.data, args.steps)
     if args.only in (None, "data"):
         print("\n| data path | samples/s |\n| --- | --- |")
         for w in (0, 1, 2):

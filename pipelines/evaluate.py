@@ -28,7 +28,7 @@ def parser() -> argparse.ArgumentParser:
                                       "(e.g. laplacian,roken: one table, the same tasks)")
     ap.add_argument("--robots", help="team size or list, e.g. 4 or 2,4,8")
     ap.add_argument("--episodes", type=int, help="episodes per team size")
-    ap.add_argument("--maps", help="train, eval, or a folder / glob / file of .map, .png, .npy maps")
+    ap.add_argument("--maps", help="train, val, eval, or a folder / glob / file of .map, .png, .npy maps")
     ap.add_argument("--num-maps", type=int, help="use at most this many maps")
     ap.add_argument("--seed", type=int, help="task seed")
     ap.add_argument("--out", required=True, help="output folder or URI (maps/, episodes/, metrics.json)")

@@ -22,7 +22,7 @@ from roken.data.generation import check
 
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--maps", help="train, eval, or a folder / glob / file of .map, .png, .npy maps")
+    ap.add_argument("--maps", help="train, val, eval, or a folder / glob / file of .map, .png, .npy maps")
     ap.add_argument("--num-maps", type=int, help="use at most this many maps")
     ap.add_argument("--episodes-per-map", type=int, help="episodes per map (default 10)")
     ap.add_argument("--seed", type=int, help="task seed")

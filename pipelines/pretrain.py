@@ -42,8 +42,8 @@ def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True, help="dataset folder or URI from pipelines/generate.py")
     ap.add_argument("--out", required=True, help="run folder (checkpoints, metrics); an absolute path for Ray")
-    ap.add_argument("--val-data", help="held-out dataset (e.g. generated with --maps eval); default: "
-                                       "train.val_fraction of --data's maps")
+    ap.add_argument("--val-data", help="held-out dataset (generated with --maps val; a dataset of eval maps is "
+                                       "refused); default: train.val_fraction of --data's maps")
     ap.add_argument("--preset", choices=sorted(PRESETS), help="model size (sets the model section over --config)")
     ap.add_argument("--steps", type=int, help="optimizer steps (train.steps)")
     ap.add_argument("--batch-size", type=int, help="global batch (train.batch_size), split over the workers")
@@ -119,13 +119,19 @@ def main(argv=None) -> int:
                              f"or shared (NFS) path")
         out = os.path.abspath(args.out)
         args.data, args.val_data = _absolute(args.data), _absolute(args.val_data)  # Ray workers have another cwd
-        for d in (args.data, args.val_data):
+        for d, role in ((args.data, "--data"), (args.val_data, "--val-data")):
             if d:
-                check_dataset(d)
+                check_dataset(d, role)
         step = check_resume(out, cfg)
-        if step >= cfg.train.steps:
-            print(f"[pretrain] {out} is already at step {step} of train.steps={cfg.train.steps}; raise --steps "
-                  f"to train on", file=sys.stderr)
+        done = Path(out) / "summary.json"
+        last = json.loads(done.read_text()) if step and done.is_file() else None
+        budget = cfg.train.time_budget_s
+        if last and last.get("steps") == step and (step >= cfg.train.steps or budget > 0 and
+                                                    last.get("train_s", 0.0) >= budget):
+            print(f"[pretrain] {out} is finished (step {step} of train.steps={cfg.train.steps}); raise --steps "
+                  f"(or train.time_budget_s) to train on. Its summary:", file=sys.stderr)
+            print(summary_table(json.loads(done.read_text())))
+            return 0
         if wants_ray(args):
             run_ray(args, cfg, out)
         else:

@@ -22,7 +22,7 @@ def main(argv=None) -> int:
     ap.add_argument("--checkpoint", required=True, help="checkpoint directory or run folder")
     ap.add_argument("--sweeps", default=",".join(SWEEPS), help=f"comma list of {', '.join(SWEEPS)}")
     ap.add_argument("--episodes", type=int, default=200, help="episodes per setting")
-    ap.add_argument("--maps", default="eval", help="eval, train, or a folder of map files")
+    ap.add_argument("--maps", default="eval", help="eval, val, train, or a folder of map files")
     ap.add_argument("--out", required=True)
     add_common_args(ap)
     args = ap.parse_args(argv)

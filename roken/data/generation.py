@@ -37,7 +37,7 @@ def _paper_team_mix() -> dict[int, float]:
 
 @dataclass
 class DatasetConfig:
-    maps: str = "train"  # "train", "eval", or a folder / glob / file of external maps
+    maps: str = "train"  # "train", "val", "eval", or a folder / glob / file of external maps
     num_maps: int | None = None  # at most this many maps (default: the whole split or every file)
     episodes_per_map: int = 10
     team_sizes: dict[int, float] = field(default_factory=_paper_team_mix)  # N -> relative weight

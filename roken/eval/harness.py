@@ -46,7 +46,7 @@ class EvalConfig:
     planner: str = "laplacian"  # one planner or a comma-separated list (PLANNERS)
     robots: list[int] = field(default_factory=lambda: [4])
     episodes: int = 200  # per team size
-    maps: str = "eval"  # "train", "eval", or a folder / glob / file of external maps
+    maps: str = "eval"  # "train", "val", "eval", or a folder / glob / file of external maps
     num_maps: int | None = None  # at most this many maps (default: the whole split or every file)
     seed: int = 0
     unit_episodes: int = 100  # episodes per work unit (a unit is one batched expert run)

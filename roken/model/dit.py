@@ -45,6 +45,9 @@ class ModelConfig:
     occ_layer: int = -1  # decoder layer whose output feeds the occupancy heads; -1 = the middle one
     cross_attn_gate: bool = False  # AdaLN-Zero gate on the cross-attention output (paper: off)
     freq_dim: int = 256  # sinusoidal features of the diffusion step
+    # Beyond the paper, for laptops (README "A map encoder for laptops"); the defaults are the paper's.
+    map_encoder: str = "resnet"  # resnet (paper) | patch: linear 10x10 patch embedding + ConvNeXt mixer blocks
+    local_crop: int = 0  # side (cells) of an ego-centric occupancy crop in each robot token, at 1x and 3x; 0 = off
 
 
 PRESETS = {
@@ -66,6 +69,14 @@ def sincos_2d(p: torch.Tensor, dim: int) -> torch.Tensor:
     omega = 1.0 / 10000 ** (torch.arange(quarter, device=p.device, dtype=torch.float32) / quarter)
     ax, ay = p[..., :1].float() * omega, p[..., 1:].float() * omega
     return torch.cat([ax.sin(), ax.cos(), ay.sin(), ay.cos()], dim=-1)
+
+
+def check(cfg: ModelConfig) -> None:
+    """Shapes that would otherwise fail at the first forward pass, named by their keys."""
+    if cfg.map_encoder not in MAP_ENCODERS:
+        raise ValueError(f"model.map_encoder must be one of {', '.join(MAP_ENCODERS)}, got {cfg.map_encoder!r}")
+    if cfg.local_crop < 0:
+        raise ValueError(f"model.local_crop must be >= 0 (0 = off), got {cfg.local_crop}")
 
 
 def modulate(x, shift, scale):
@@ -123,6 +134,59 @@ class MapEncoder(nn.Module):
         h = self.blocks(self.stem(m))  # (B, C, S/2, S/2)
         h = self.patch(h).flatten(2).transpose(1, 2)  # (B, M, width), row-major patches
         return self.norm(h + self.pos)
+
+
+class ConvNeXtBlock(nn.Module):
+    """Depthwise 7x7 mixing over the patch grid + a pointwise MLP (ConvNeXt), on (B, W, n, n) tokens."""
+
+    def __init__(self, w: int):
+        super().__init__()
+        self.dw = nn.Conv2d(w, w, 7, padding=3, groups=w)
+        self.norm = nn.LayerNorm(w)
+        self.mlp = nn.Sequential(nn.Linear(w, 2 * w), nn.GELU(approximate="tanh"), nn.Linear(2 * w, w))
+
+    def forward(self, x):
+        h = self.dw(x).permute(0, 2, 3, 1)  # (B, n, n, W)
+        return x + self.mlp(self.norm(h)).permute(0, 3, 1, 2)
+
+
+class PatchMapEncoder(nn.Module):
+    """(B, 3, S, S) -> (B, M, width): a linear embedding of each 10 x 10 patch at full resolution, then
+    `map_blocks` ConvNeXt blocks over the 14 x 14 grid. About 30x fewer FLOPs than the ResNet at `small`
+    widths (benchmarks/README.md), the same token layout and positional embedding."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.patch = nn.Conv2d(3, cfg.width, cfg.map_patch, stride=cfg.map_patch)
+        self.blocks = nn.Sequential(*[ConvNeXtBlock(cfg.width) for _ in range(cfg.map_blocks)])
+        n = cfg.canvas // cfg.map_patch
+        centres = (torch.arange(n, dtype=torch.float32) + 0.5) * cfg.map_patch
+        grid = torch.stack(torch.meshgrid(centres, centres, indexing="xy"), dim=-1).reshape(-1, 2)
+        self.register_buffer("pos", sincos_2d(grid, cfg.width), persistent=False)
+        self.norm = nn.LayerNorm(cfg.width)
+
+    def forward(self, m: torch.Tensor) -> torch.Tensor:
+        h = self.blocks(self.patch(m))  # (B, W, n, n)
+        return self.norm(h.flatten(2).transpose(1, 2) + self.pos)
+
+
+MAP_ENCODERS = {"resnet": MapEncoder, "patch": PatchMapEncoder}
+
+
+def local_crops(occ: torch.Tensor, start: torch.Tensor, side: int, scales=(1.0, 3.0)) -> torch.Tensor:
+    """Ego-centric occupancy around each robot: occ (Bm, S, S), start (Bm, R, 2) metres -> (Bm, R, len(scales)
+    side^2), bilinear at offsets (j - (side-1)/2) * scale metres from the start (outside the canvas: obstacle)."""
+    Bm, S = occ.shape[0], occ.shape[-1]
+    o = (torch.arange(side, device=occ.device, dtype=torch.float32) - (side - 1) / 2)
+    oy, ox = torch.meshgrid(o, o, indexing="ij")
+    off = torch.stack([ox, oy], -1).reshape(-1, 2)  # (side^2, 2) = (x, y)
+    off = torch.cat([off * s for s in scales])  # (n_s side^2, 2)
+    pts = start.float()[:, :, None, :] + off  # (Bm, R, P, 2)
+    grid = pts.reshape(Bm, -1, 1, 2) * (2.0 / S) - 1.0
+    padded = F.pad(occ[:, None].float(), (1, 1, 1, 1), value=1.0)  # outside counts as obstacle
+    grid = grid * (S / (S + 2))  # the same metres on the padded grid
+    out = F.grid_sample(padded, grid.to(padded.dtype), mode="bilinear", padding_mode="border", align_corners=False)
+    return out.view(Bm, start.shape[1], -1)
 
 
 class Attention(nn.Module):
@@ -193,10 +257,11 @@ def mlp_head(width: int, out: int) -> nn.Sequential:
 
 
 class MapContext:
-    """What a plan computes once: the map tokens' keys/values for every decoder layer."""
+    """What a plan computes once: the map tokens' keys/values for every decoder layer, and the occupancy
+    channel (Bm, S, S) the ego-centric crops are read from."""
 
-    def __init__(self, kv: list[tuple[torch.Tensor, torch.Tensor]]):
-        self.kv = kv
+    def __init__(self, kv: list[tuple[torch.Tensor, torch.Tensor]], occ: torch.Tensor | None = None):
+        self.kv, self.occ = kv, occ
 
     @property
     def batch(self) -> int:
@@ -214,7 +279,10 @@ class RokenDiT(nn.Module):
         self.phi_mtau = nn.Embedding(2, w)
         self.phi_tok = nn.Linear(4 * w, w)
         self.t_embed = TimestepEmbedder(w, cfg.freq_dim)
-        self.map_encoder = MapEncoder(cfg)
+        check(cfg)
+        self.map_encoder = MAP_ENCODERS[cfg.map_encoder](cfg)
+        if cfg.local_crop:
+            self.phi_crop = nn.Sequential(nn.Linear(2 * cfg.local_crop ** 2, w), nn.SiLU(), nn.Linear(w, w))
         self.blocks = nn.ModuleList([DecoderBlock(cfg) for _ in range(cfg.depth)])
         self.occ_layer = cfg.occ_layer if cfg.occ_layer >= 0 else cfg.depth // 2 - 1
         self.final = FinalLayer(w, 2 * H)
@@ -252,7 +320,7 @@ class RokenDiT(nn.Module):
     def encode_map(self, map_tensor: torch.Tensor) -> MapContext:
         """(B, 3, S, S) -> the cross-attention keys/values of every layer; once per plan."""
         tokens = self.map_encoder(map_tensor)  # (B, M, W)
-        return MapContext([blk.cross.kv(tokens) for blk in self.blocks])
+        return MapContext([blk.cross.kv(tokens) for blk in self.blocks], map_tensor[:, 0])
 
     def forward(self, x: torch.Tensor, k: torch.Tensor, cond: dict, ctx: MapContext | None = None,
                 aux: bool = False) -> dict[str, torch.Tensor]:
@@ -266,6 +334,10 @@ class RokenDiT(nn.Module):
         tok = torch.cat([self.phi_tau(x.reshape(B, R, 2 * H)), self.phi_g(cond["rel_goal"]),
                          self.phi_mg(cond["goal_mask"].long()), self.phi_mtau(cond["traj_mask"].long())], dim=-1)
         z = self.phi_tok(tok) + sincos_2d(cond["start"], self.cfg.width)  # (B, R, W)
+        if self.cfg.local_crop:  # one crop per map row, shared by its G candidates / K draws
+            Bm = ctx.occ.shape[0]
+            crop = local_crops(ctx.occ, cond["start"].view(Bm, B // Bm, R, 2)[:, 0], self.cfg.local_crop)
+            z = z + self.phi_crop(crop).repeat_interleave(B // Bm, 0)  # (B, R, W)
         c = self.t_embed(k)  # (B, W)
         pad_mask = cond["robot_mask"].bool()[:, None, None, :]  # (B, 1, 1, R): True = attend
         out = {}

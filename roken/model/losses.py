@@ -10,6 +10,21 @@
           part is weighted by abar_k, the signal fraction of the noisy input (see the comment below).
 
 A weight of 0 switches a term off (and skips its computation): the ablation table's rows are weight settings.
+
+`loss.sdf_mode` says where the trajectory part of L_sdf acts. The closed loop executes only a chunk's first
+`replan_every` moves, and the paper's form integrates the predicted moves by cumulative sum, so move h
+receives the summed gradient of points h..H-1: measured on the shipped model, the SDF gradient on the
+predicted noise is 2.2x the denoising gradient at move 0 and 0.25x at move 15, and the executed follower
+moves came out unrelated to the expert's (cosine +0.03). The modes (README "Which SDF term"):
+  paper     points integrated from the predicted chunk, weighted by abar_k (the shipped model's loss)
+  off       no trajectory SDF term (the waypoint part stays, with loss.sdf_wp)
+  stopgrad  point h = start + stop_grad(moves 0..h-1) + move h: each point's penalty moves only its own move
+  low_noise the paper's points, only for draws with k < loss.sdf_max_k (x0_hat is then a sharp estimate)
+
+`train.noise_draws` = K (Mini-Diffuser): each sample's map is encoded once and the decoder sees K independent
+(k, eps) draws of the same clean chunk against that one map context (rows ordered sample-major, the layout the
+model already uses for G candidates of one prompt). L_traj and L_sdf average over the K draws; the auxiliary
+losses (waypoints, occupancy) are taken once per sample, on its first draw.
 """
 from __future__ import annotations
 
@@ -19,7 +34,7 @@ import torch
 import torch.nn.functional as F
 
 from ..data.samples import SampleConfig
-from .diffusion import NoiseSchedule
+from .diffusion import COND_KEYS, NoiseSchedule
 from .dit import RokenDiT
 
 
@@ -41,6 +56,12 @@ class LossConfig:
     sdf_normalize: bool = True  # penalty [ReLU(d_thres - sdf) / d_thres]^2 instead of metres^2
     sdf_ramp_start: int = 0  # optimizer step at which lambda_4 starts to ramp in from 0
     sdf_ramp_steps: int = 0  # steps to reach the full lambda_4 (0 = at once)
+    sdf_mode: str = "paper"  # paper | off | stopgrad | low_noise (module docstring)
+    sdf_max_k: int = 10  # low_noise: the trajectory penalty applies to draws with k < sdf_max_k
+
+    def __post_init__(self):
+        if self.sdf_mode in (False, "False", "false", "no"):  # YAML reads a bare `off` as false
+            self.sdf_mode = "off"
 
     def sdf_scale(self, step: int) -> float:
         """The ramp-in factor of lambda_4 at optimizer step `step`."""
@@ -49,7 +70,12 @@ class LossConfig:
         return 1.0 if self.sdf_ramp_steps <= 0 else min(1.0, (step - self.sdf_ramp_start) / self.sdf_ramp_steps)
 
 
+SDF_MODES = ("paper", "off", "stopgrad", "low_noise")
+
+
 def check(cfg: LossConfig) -> None:
+    if cfg.sdf_mode not in SDF_MODES:
+        raise ValueError(f"loss.sdf_mode must be one of {', '.join(SDF_MODES)}, got {cfg.sdf_mode!r}")
     if cfg.traj_reduction not in ("mean", "sum"):
         raise ValueError(f"loss.traj_reduction must be 'mean' or 'sum', got {cfg.traj_reduction!r}")
     bad = [k for k in ("traj", "wp", "occ", "sdf", "sdf_threshold") if getattr(cfg, k) < 0]
@@ -81,48 +107,78 @@ def _masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 
 def pretraining_loss(model: RokenDiT, sched: NoiseSchedule, batch: dict, loss_cfg: LossConfig,
-                     sample_cfg: SampleConfig, generator: torch.Generator | None = None, step: int | None = None
+                     sample_cfg: SampleConfig, generator: torch.Generator | None = None, step: int | None = None,
+                     draws: int = 1, k: torch.Tensor | None = None, eps: torch.Tensor | None = None
                      ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """Total loss (scalar tensor) and per-term figures for logging. batch: a collated sample batch on device;
-    `step` (the optimizer step) applies the ramp-in of lambda_4, None = the full weight."""
-    x0 = batch["chunk"]  # (B, R, H, 2)
-    B = x0.shape[0]
-    real = batch["robot_mask"].float()  # (B, R)
-    fixed = batch["traj_mask"].float() * real
+    """Total loss (scalar tensor) and per-term figures for logging. batch: a collated sample batch on device
+    (B samples); `draws` = K noise draws per sample (B K decoder rows, one map encoding per sample); `k` (B K,)
+    and `eps` (B K, R, H, 2) give the draws explicitly (tests), else they come from `generator`. `step` (the
+    optimizer step) applies the ramp-in of lambda_4, None = the full weight."""
+    B = batch["chunk"].shape[0]
+    K = max(int(draws), 1)
+    rep = (lambda v: v.repeat_interleave(K, 0)) if K > 1 else (lambda v: v)
+    x0 = rep(batch["chunk"])  # (BK, R, H, 2): sample-major, draw-minor
+    real = rep(batch["robot_mask"].float())  # (BK, R)
+    fixed = rep(batch["traj_mask"].float()) * real
     gen = real - fixed
-    k = torch.randint(0, sched.K, (B,), device=x0.device, generator=generator)
-    eps = torch.randn(x0.shape, device=x0.device, generator=generator)
+    if k is None:
+        k = torch.randint(0, sched.K, (B * K,), device=x0.device, generator=generator)
+    if eps is None:
+        eps = torch.randn(x0.shape, device=x0.device, generator=generator)
     xk = torch.where(fixed.bool()[:, :, None, None], x0, sched.q_sample(x0, k, eps))
     aux = loss_cfg.wp > 0 or loss_cfg.occ > 0 or loss_cfg.sdf > 0
-    out = model(xk, k, batch, aux=aux)
+    # the map stays at B rows: the model encodes it once and shares the context across each sample's K rows
+    cond = {key: rep(batch[key]) for key in COND_KEYS} | {"map": batch["map"]}
+    out = model(xk, k, cond, aux=aux)
+    first = slice(None, None, K)  # each sample's first draw: the auxiliary losses, once per sample
 
     terms: dict[str, torch.Tensor] = {}
-    sq = (out["eps"] - eps) ** 2  # (B, R, H, 2)
+    sq = (out["eps"] - eps) ** 2  # (BK, R, H, 2)
     terms["traj"] = _masked_mean(sq.mean(dim=(2, 3)) if loss_cfg.traj_reduction == "mean" else sq.sum(dim=(2, 3)), gen)
+    real1 = batch["robot_mask"].float()
     if loss_cfg.wp > 0:
-        terms["wp"] = _masked_mean(((out["waypoints"] - batch["waypoints"]) ** 2).sum(-1).mean(-1), real)
+        terms["wp"] = _masked_mean(((out["waypoints"][first] - batch["waypoints"]) ** 2).sum(-1).mean(-1), real1)
     if loss_cfg.occ > 0:
-        bce = sum(F.binary_cross_entropy_with_logits(out[key], batch[key], reduction="none").mean(dim=(2, 3))
+        bce = sum(F.binary_cross_entropy_with_logits(out[key][first], batch[key], reduction="none").mean(dim=(2, 3))
                   for key in ("occ_small", "occ_large"))
-        terms["occ"] = _masked_mean(bce, real)
+        terms["occ"] = _masked_mean(bce, real1)
     if loss_cfg.sdf > 0:
-        th = loss_cfg.sdf_threshold
-        x0_hat = torch.where(fixed.bool()[:, :, None, None], x0, sched.predict_x0(xk, k, out["eps"]))
-        traj = decode_chunk(x0_hat, batch["start"], sample_cfg)  # (B, R, H, 2)
-        wps = batch["start"][:, :, None, :] + out["waypoints"] * sample_cfg.waypoint_scale  # (B, R, K, 2)
-        # Weighted by abar_k: x0_hat = (x_k - sqrt(1 - abar) eps_hat) / sqrt(abar) amplifies the noise
-        # prediction by up to 1/sqrt(abar) ~ 300 at the noisiest steps, where the penalty would otherwise swamp
-        # the denoising gradient (measured: L_traj stops falling); the weight bounds d(penalty)/d(eps_hat).
-        w = sched.abar[k][:, None, None]
-        norm = th if loss_cfg.sdf_normalize else 1.0
-        pen_traj = w * (F.relu(th - sdf_at(batch["sdf"], traj)) / norm) ** 2  # (B, R, H)
-        pen_wp = (F.relu(th - sdf_at(batch["sdf"], wps)) / norm) ** 2  # (B, R, K)
-        H, K = pen_traj.shape[-1], pen_wp.shape[-1]
-        total = (loss_cfg.sdf_traj * (pen_traj.sum(-1) * gen).sum() + loss_cfg.sdf_wp * (pen_wp.sum(-1) * real).sum())
-        terms["sdf"] = total / (gen.sum() * H + real.sum() * K).clamp(min=1)
+        terms["sdf"] = _sdf_term(sched, batch, loss_cfg, sample_cfg, out, x0, xk, k, fixed, gen, K)
     sdf_w = loss_cfg.sdf * (1.0 if step is None else loss_cfg.sdf_scale(step))
     weights = {"traj": loss_cfg.traj, "wp": loss_cfg.wp, "occ": loss_cfg.occ, "sdf": sdf_w}
     loss = sum(weights[name] * v for name, v in terms.items())
     metrics = {f"losses/{name}": v.detach() for name, v in terms.items()}  # tensors: no device sync here
     metrics["losses/total"] = loss.detach()
     return loss, metrics
+
+
+def _sdf_term(sched, batch, loss_cfg, sample_cfg, out, x0, xk, k, fixed, gen, K) -> torch.Tensor:
+    """L_sdf: the trajectory part per loss.sdf_mode over the B K draws (averaged over draws), plus the waypoint
+    part once per sample."""
+    th = loss_cfg.sdf_threshold
+    norm = th if loss_cfg.sdf_normalize else 1.0
+    sdf = batch["sdf"].repeat_interleave(K, 0) if K > 1 else batch["sdf"]
+    start = batch["start"].repeat_interleave(K, 0) if K > 1 else batch["start"]
+    real1 = batch["robot_mask"].float()
+    wps = batch["start"][:, :, None, :] + out["waypoints"][::K] * sample_cfg.waypoint_scale  # (B, R, Kw, 2)
+    pen_wp = (F.relu(th - sdf_at(batch["sdf"], wps)) / norm) ** 2  # (B, R, Kw)
+    H, Kw = x0.shape[2], pen_wp.shape[-1]
+    wp_sum = loss_cfg.sdf_wp * (pen_wp.sum(-1) * real1).sum()
+    if loss_cfg.sdf_mode == "off" or loss_cfg.sdf_traj == 0:
+        return wp_sum / (real1.sum() * Kw).clamp(min=1)
+    x0_hat = torch.where(fixed.bool()[:, :, None, None], x0, sched.predict_x0(xk, k, out["eps"]))
+    if loss_cfg.sdf_mode == "stopgrad" and sample_cfg.representation == "relative":
+        # point h = start + (moves 0..h-1, no gradient) + move h: a point's penalty moves only its own move
+        before = torch.cumsum(x0_hat.detach(), dim=2) - x0_hat.detach()
+        traj = start[:, :, None, :] + (before + x0_hat) * sample_cfg.step_scale
+    else:
+        traj = decode_chunk(x0_hat, start, sample_cfg)  # (BK, R, H, 2)
+    # Weighted by abar_k: x0_hat = (x_k - sqrt(1 - abar) eps_hat) / sqrt(abar) amplifies the noise
+    # prediction by up to 1/sqrt(abar) ~ 300 at the noisiest steps, where the penalty would otherwise swamp
+    # the denoising gradient (measured: L_traj stops falling); the weight bounds d(penalty)/d(eps_hat).
+    w = sched.abar[k][:, None, None]
+    if loss_cfg.sdf_mode == "low_noise":
+        w = w * (k < loss_cfg.sdf_max_k).float()[:, None, None]
+    pen_traj = w * (F.relu(th - sdf_at(sdf, traj)) / norm) ** 2  # (BK, R, H)
+    traj_sum = loss_cfg.sdf_traj * (pen_traj.sum(-1) * gen).sum() / K  # mean over the draws
+    return (traj_sum + wp_sum) / (gen.sum() / K * H + real1.sum() * Kw).clamp(min=1)

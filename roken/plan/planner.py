@@ -24,7 +24,7 @@ from ..data.condition import build_condition, decode_chunk
 from ..data.samples import SampleConfig
 from ..model.diffusion import COND_KEYS, DiffusionConfig, NoiseSchedule, ddim_sample, ddpm_sample, make_prompt
 from ..model.dit import ModelConfig, RokenDiT
-from ..train.loop import pick_device
+from ..devices import pick_device
 from ..world.loaders import fit_to_canvas
 
 DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}

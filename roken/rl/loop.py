@@ -27,7 +27,7 @@ from ..plan.planner import RokenPlanner
 from ..train import checkpoint as ckpt
 from ..train.data import fingerprint
 from ..train.logger import RunLogger, duration
-from ..train.loop import pick_device
+from ..devices import pick_device
 from ..units import Unit
 from ..world.tasks import TaskConfig
 from .config import RLConfig, check, team_sizes

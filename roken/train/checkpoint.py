@@ -98,22 +98,29 @@ def list_checkpoints(run_dir: str | Path) -> list[Path]:
     return sorted(found, key=lambda p: (_read_config(p).get("step", -1), p.name))
 
 
-def prune(run_dir: str | Path, keep: int, score_key: str | None = None) -> None:
-    """Keep the newest `keep` checkpoints (and the best by `score_key`, lower is better) of a run folder."""
+def prune(run_dir: str | Path, keep: int) -> None:
+    """Keep the newest `keep` checkpoints of a run folder, and its best (`find(..., "best")`)."""
     ckpts = list_checkpoints(run_dir)
     if keep <= 0 or len(ckpts) <= keep:
         return
-    protected = set(ckpts[-keep:])
-    best = find(run_dir, "best", score_key) if score_key else None
-    if best is not None:
-        protected.add(best)
+    protected = set(ckpts[-keep:]) | {find(run_dir, "best")}
     for p in ckpts:
         if p not in protected:
             shutil.rmtree(p, ignore_errors=True)
 
 
-def find(path: str | Path, which: str = "latest", score_key: str = "val/losses/traj") -> Path:
-    """A checkpoint directory, or a run folder's latest / best (lowest `score_key` in its validation) one."""
+def best_key(validation: dict) -> tuple | None:
+    """What "best" ranks by, higher first: closed-loop success, ties broken by reach (roken/train/closed_loop.py);
+    a run without closed-loop validation falls back to the lowest held-out L_traj."""
+    if validation.get("closed_loop/success") is not None:
+        return (1, float(validation["closed_loop/success"]), float(validation.get("closed_loop/reach") or 0.0))
+    if validation.get("val/losses/traj") is not None:
+        return (0, -float(validation["val/losses/traj"]), 0.0)
+    return None
+
+
+def find(path: str | Path, which: str = "latest") -> Path:
+    """A checkpoint directory, or a run folder's latest / best (`best_key`; the later of equals) one."""
     p = Path(path)
     if (p / CONFIG).is_file() or (p / WEIGHTS).is_file():
         return p
@@ -127,8 +134,8 @@ def find(path: str | Path, which: str = "latest", score_key: str = "val/losses/t
         return ckpts[-1]
     if which != "best":
         raise ValueError(f"which must be 'latest' or 'best', got {which!r}")
-    scored = [(v, c) for c in ckpts if (v := _read_config(c).get("validation", {}).get(score_key)) is not None]
-    return min(scored, key=lambda vc: vc[0])[1] if scored else ckpts[-1]
+    scored = [(key, i, c) for i, c in enumerate(ckpts) if (key := best_key(_read_config(c).get("validation", {})))]
+    return max(scored)[2] if scored else ckpts[-1]
 
 
 def _read_config(d: Path) -> dict:

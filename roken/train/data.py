@@ -116,9 +116,23 @@ def _read(location: str) -> tuple[pa.Table, pa.Table]:
     return episodes, shards.read_table(location, "maps")
 
 
-def check_dataset(location: str) -> int:
+def check_dataset(location: str, role: str = "--data") -> int:
     """Fail early, naming the folder and the fix, on a dataset that cannot be trained on (before any worker
-    starts or anything is written); returns the number of successful episodes."""
+    starts or anything is written); returns the number of successful episodes. An evaluation folder is never
+    training data, and a dataset of `eval` maps is neither training nor validation data: choosing a checkpoint
+    on the maps evaluations report on would tune on the test set."""
+    if fs.exists(fs.join(location, "metrics.json")) and not fs.exists(fs.join(location, "manifest.json")):
+        raise ValueError(f"{role} {location}: this is an evaluation folder (metrics.json, no manifest.json), not a "
+                         f"dataset; make one with pipelines/generate.py --maps {'val' if role == '--val-data' else 'train'}")
+    try:
+        maps = json.loads(fs.read_bytes(fs.join(location, "manifest.json")))["config"]["dataset"]["maps"]
+    except (OSError, ValueError, KeyError, TypeError):
+        maps = None
+    if maps == "eval":
+        raise ValueError(f"{role} {location}: this dataset was generated on the `eval` maps, the maps evaluations "
+                         f"report on; training or choosing checkpoints there tunes on the test set. Generate "
+                         f"{'validation' if role == '--val-data' else 'training'} data with pipelines/generate.py "
+                         f"--maps {'val' if role == '--val-data' else 'train'}")
     if not fs.exists(fs.join(location, "episodes")):
         raise ValueError(f"--data {location}: no dataset there (no episodes/ folder); make one with "
                          f"pipelines/generate.py --out {location}")

@@ -38,6 +38,10 @@ def model_card(cfg: dict, src: Path, params: int, notes: str) -> str:
         if f"val/{name}/obs_frac" in v:
             rows.append(f"| {name} | " + " | ".join(f"{v[f'val/{name}/{k}']:.3f}" for k in CHUNK_METRICS) + " |")
     table = "\n".join([f"| chunk | {' | '.join(CHUNK_METRICS)} |", "|" + " --- |" * (len(CHUNK_METRICS) + 1), *rows])
+    keys_cl = ("success", "reach", "obstacle_collision", "inter_collision", "connectivity")
+    closed = ("| " + " | ".join(keys_cl) + " |\n|" + " --- |" * len(keys_cl) + "\n| "
+              + " | ".join(f"{v[f'closed_loop/{k}']:.3f}" for k in keys_cl) + " |") \
+        if "closed_loop/success" in v else "(none recorded)"
     code = cfg.get("code_version", {})
     keys = ("condition_prob", "subteam_prob", "final_goal_prob", "team_size_weights")
     samples = json.dumps({k: cfg["samples"][k] for k in keys})
@@ -46,15 +50,23 @@ def model_card(cfg: dict, src: Path, params: int, notes: str) -> str:
     return f"""# Roken DiT checkpoint
 
 - Architecture: width {m['width']}, {m['depth']} decoder layers, {m['heads']} heads, MLP {m['mlp_hidden']},
-  map encoder {m['map_channels']} channels x {m['map_blocks']} blocks: {params:,} parameters; weights in fp16
+  map encoder `{m.get('map_encoder', 'resnet')}` ({m['map_channels']} channels x {m['map_blocks']} blocks), ego-centric
+  crop {m.get('local_crop', 0) or 'off'}: {params:,} parameters; weights in fp16
   (EMA of the training weights), loaded in fp32 by `roken.train.checkpoint.load`.
 - Trained from `{src}` at step {cfg['step']}: global batch {t['batch_size']}, AdamW lr {t['lr']}, {t['schedule']}
-  schedule, EMA {t['ema_decay']}, seed {t['seed']}; loss {json.dumps(cfg['loss'])}.
+  schedule, EMA {t['ema_decay']}, seed {t['seed']}, {t.get('noise_draws', 1)} noise draw(s) per encoded sample;
+  loss {json.dumps(cfg['loss'])}.
 - Samples: {samples}.
 - Data: {data}.
 - Code: roken {code.get('roken')}, git {code.get('git')}.
 
-## Validation (held-out prompts, DDIM-{t.get('ddim_steps', 10)}, one chunk each)
+## Closed-loop validation (the checkpoint's own, {int(v.get('closed_loop/episodes') or 0)} `val` tasks, {t.get('closed_loop_robots', 4)} robots, plain Roken)
+
+{closed}
+
+## Open-loop validation (held-out prompts, DDIM-{t.get('ddim_steps', 10)}, one chunk each)
+
+First-move cosine with the expert: leader {v.get('val/first_move_cos_leader', float('nan')):.3f}, follower {v.get('val/first_move_cos_follower', float('nan')):.3f}; L2 over the executed moves {v.get('val/l2_executed_m', float('nan')):.3f} m.
 
 Held-out loss: total {v.get('val/losses/total', float('nan')):.4f}, L_traj {v.get('val/losses/traj', float('nan')):.4f}.
 

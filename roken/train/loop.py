@@ -10,6 +10,7 @@ rank and world size, the DDP wrapper, where checkpoints go and where a resumed r
 from __future__ import annotations
 
 import copy
+import json
 import math
 import random
 import time
@@ -21,16 +22,20 @@ import numpy as np
 import torch
 
 from ..data.build import code_version
+from ..devices import pick_device
 from ..data.loader import to_device
 from ..data.store import atomic_write_json
 from ..data.samples import SampleConfig
 from ..model.diffusion import DiffusionConfig, NoiseSchedule
 from ..model.dit import ModelConfig, RokenDiT
 from ..model.losses import LossConfig, check as check_loss, pretraining_loss
+from ..plan.rollout import PlanConfig
+from ..world.maps import MapConfig
 from ..world.tasks import TaskConfig
 from . import checkpoint as ckpt
 from .data import SampleStream, fingerprint, load_banks, make_loader
 from .logger import RunLogger, duration
+from .closed_loop import format_closed_loop
 from .validation import Validator, format_validation
 
 
@@ -53,6 +58,11 @@ class TrainConfig:
     val_fraction: float = 0.05  # maps held out of --data when no --val-data is given
     val_prompts: int = 64
     ddim_steps: int = 10  # sampler steps of the validation chunks
+    noise_draws: int = 1  # K (Mini-Diffuser): (k, eps) draws per sample against one map encoding (losses.py)
+    closed_loop_every: int = 1000  # closed-loop validation on `val` tasks every this many steps and at the end; 0 = off
+    closed_loop_tasks: int = 32  # fixed held-out tasks of the `val` map split (roken/train/closed_loop.py)
+    closed_loop_robots: int = 4
+    time_budget_s: float = 0.0  # stop (with a checkpoint) after this much training time, validation excluded; 0 = off
     loader_workers: int = 2  # DataLoader processes per training worker
     compile: bool = False  # torch.compile the model (GPU; minutes of compile time)
     precision: str = "auto"  # "auto" = bf16 autocast on CUDA, fp32 on CPU; or "fp32" / "bf16"
@@ -68,9 +78,12 @@ def check(cfg: TrainConfig) -> None:
         raise ValueError(f"train.precision must be 'auto', 'fp32' or 'bf16', got {cfg.precision!r}")
     if not 0 <= cfg.ema_decay < 1 or cfg.lr <= 0 or not 0 <= cfg.val_fraction < 1:
         raise ValueError("train.ema_decay in [0, 1), train.lr > 0, train.val_fraction in [0, 1)")
-    for k in ("log_every", "checkpoint_every"):
+    for k in ("log_every", "checkpoint_every", "noise_draws"):
         if getattr(cfg, k) < 1:
             raise ValueError(f"train.{k} must be >= 1, got {getattr(cfg, k)}")
+    if cfg.closed_loop_every < 0 or cfg.closed_loop_tasks < 1 or cfg.closed_loop_robots < 1:
+        raise ValueError("train.closed_loop_every must be >= 0 (0 = off), train.closed_loop_tasks and "
+                         "train.closed_loop_robots >= 1")
 
 
 @dataclass
@@ -82,10 +95,12 @@ class PretrainSpec:
     samples: SampleConfig = field(default_factory=SampleConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     task: TaskConfig = field(default_factory=TaskConfig)
+    plan: PlanConfig = field(default_factory=PlanConfig)  # the closed-loop validation's planner settings
+    map: MapConfig = field(default_factory=MapConfig)  # the `val` maps of the closed-loop validation
 
     @classmethod
     def of(cls, cfg) -> "PretrainSpec":
-        return cls(cfg.train, cfg.model, cfg.diffusion, cfg.samples, cfg.loss, cfg.task)
+        return cls(cfg.train, cfg.model, cfg.diffusion, cfg.samples, cfg.loss, cfg.task, cfg.plan, cfg.map)
 
 
 def lr_factor(step: int, cfg: TrainConfig) -> float:
@@ -95,15 +110,6 @@ def lr_factor(step: int, cfg: TrainConfig) -> float:
         return 1.0
     t = min(1.0, (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps))
     return cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * t))
-
-
-def pick_device(name: str) -> torch.device:
-    """"auto" = cuda where available; asking for cuda on a machine without it is said up front."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"--device {name}: CUDA is not available on this machine; use --device cpu")
-    return torch.device(name)
 
 
 class LocalBackend:
@@ -125,7 +131,7 @@ class LocalBackend:
         """`write(directory)` fills a checkpoint; it goes to run_dir/checkpoint-{step} atomically."""
         if write is not None:
             ckpt.write_atomic(self.run_dir, step, write)
-            ckpt.prune(self.run_dir, keep, "val/losses/traj")
+            ckpt.prune(self.run_dir, keep)
 
 
 class Pretraining:
@@ -166,10 +172,11 @@ class Pretraining:
         if t.compile:
             self.net = torch.compile(self.net)
         self.step = 0
+        self.train_seconds = 0.0  # optimizer time so far (validation excluded): the time budget's clock
 
     def state(self) -> dict:
         return {"model": self.model.state_dict(), "ema": self.ema.state_dict(), "optimizer": self.opt.state_dict(),
-                "scheduler": self.sched.state_dict(), "step": self.step,
+                "scheduler": self.sched.state_dict(), "step": self.step, "train_seconds": self.train_seconds,
                 "rng": {"torch": torch.get_rng_state(), "numpy": _np_state(), "python": _py_state(),
                         "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []}}
 
@@ -179,6 +186,7 @@ class Pretraining:
         self.opt.load_state_dict(s["optimizer"])
         self.sched.load_state_dict(s["scheduler"])
         self.step = int(s["step"])
+        self.train_seconds = float(s.get("train_seconds", 0.0))
         torch.set_rng_state(s["rng"]["torch"])
         if s["rng"].get("cuda") and torch.cuda.is_available():
             torch.cuda.set_rng_state_all(s["rng"]["cuda"])
@@ -197,7 +205,7 @@ class Pretraining:
         t = self.spec.train
         with torch.autocast(self.device.type, dtype=torch.bfloat16) if self.amp else nullcontext():
             loss, logs = pretraining_loss(self.net, self.noise, batch, self.spec.loss, self.spec.samples,
-                                          step=self.step)
+                                          step=self.step, draws=t.noise_draws)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), t.grad_clip if t.grad_clip > 0 else float("inf"))
@@ -221,6 +229,9 @@ class Pretraining:
         resume = self.backend.resume_from()
         if resume is not None:
             self.load_state(ckpt.load_train_state(resume))
+        done = self.out / "summary.json"
+        if resume is not None and (self.step >= t.steps or self._out_of_time()) and done.is_file():
+            return json.loads(done.read_text())  # a finished run: its summary, nothing rewritten
         log = RunLogger(self.out, self.main, self.step, self.log_stream)
         start = self.step
         stream = SampleStream(self.train_bank, self.spec.samples, t.seed)
@@ -228,7 +239,13 @@ class Pretraining:
         if self.main and self.val_bank is not None and t.eval_every > 0:
             validator = Validator(self.val_bank, self.spec.samples, self.spec.loss, self.noise, t.val_prompts,
                                   t.ddim_steps, self.spec.task.d_obs_min, self.spec.task.d_coll_min,
-                                  self.spec.task.comm_radius, seed=t.seed + 1234)
+                                  self.spec.task.comm_radius, seed=t.seed + 1234,
+                                  executed=self.spec.plan.replan_every)
+        closed = None
+        if self.main and t.closed_loop_every > 0:
+            from .closed_loop import ClosedLoopValidator  # plan imports train: imported here, not at the top
+            closed = ClosedLoopValidator(t.closed_loop_tasks, t.closed_loop_robots, self.spec.task, self.spec.plan,
+                                         self.spec.map, seed=t.seed)
         local = t.batch_size // self.world
         log.print(f"[pretrain] {self.spec.model.width}w x {self.spec.model.depth} layers, "
                   f"{self.model.num_params() / 1e6:.2f}M params on {self.device}{' bf16' if self.amp else ''}; "
@@ -239,10 +256,12 @@ class Pretraining:
         loader = make_loader(stream, start, t.steps, t.batch_size, self.rank, self.world, t.loader_workers,
                              pin=self.device.type == "cuda")
         last_val: dict = {}
+        metrics: dict = {}
         sums: dict[str, torch.Tensor] = {}
         n_sums, wait, t_win, t0 = 0, 0.0, time.perf_counter(), time.perf_counter()
         it = iter(loader)
-        while self.step < t.steps:
+        out_of_time = self._out_of_time()
+        while self.step < t.steps and not out_of_time:
             w0 = time.perf_counter()
             batch = to_device(next(it), self.device)
             wait += time.perf_counter() - w0
@@ -250,44 +269,74 @@ class Pretraining:
             for k, v in logs.items():  # tensors: summing them does not wait for the device every step
                 sums[k] = sums.get(k, 0.0) + v
             n_sums += 1
+            self.train_seconds += time.perf_counter() - w0
             metrics = {}
             if self.step % t.log_every == 0 or self.step == t.steps:
+                out_of_time = self._out_of_time()
+            last = self.step == t.steps or out_of_time
+            if self.step % t.log_every == 0 or last:
                 now = time.perf_counter()
                 rate = n_sums * t.batch_size / (now - t_win)
                 metrics = {k: float(v) / n_sums for k, v in sums.items()} | {
                     "charts/lr": self.sched.get_last_lr()[0], "charts/samples_per_s": rate,
                     "charts/data_wait_frac": wait / (now - t_win), "charts/epoch": self.step * t.batch_size /
-                    len(self.train_bank)}
+                    len(self.train_bank), "charts/draws_per_s": rate * t.noise_draws,
+                    "time/train_s": self.train_seconds}
                 eta = (t.steps - self.step) * t.batch_size / rate
-                log.print(f"[pretrain] step {self.step}/{t.steps} ({100 * self.step / t.steps:.1f}%) "
+                if t.time_budget_s > 0:  # a time-budgeted run ends when its training time is spent
+                    eta = min(eta, max(t.time_budget_s - self.train_seconds, 0.0))
+                done = self.step / t.steps if t.time_budget_s <= 0 else max(self.step / t.steps,
+                                                                            self.train_seconds / t.time_budget_s)
+                log.print(f"[pretrain] step {self.step}/{t.steps} ({100 * done:.1f}%) "
                           f"loss {metrics['losses/total']:.4f} traj {metrics['losses/traj']:.4f}"
                           + "".join(f" {k[7:]} {metrics[k]:.4f}" for k in ("losses/wp", "losses/occ", "losses/sdf")
                                     if k in metrics)
                           + f" | {rate:.0f} samples/s, data wait {100 * metrics['charts/data_wait_frac']:.0f}%, "
                           f"lr {metrics['charts/lr']:.2e}, ETA {duration(eta)}")
                 sums, n_sums, wait, t_win = {}, 0, 0.0, now
-            if validator is not None and (self.step % t.eval_every == 0 or self.step == t.steps):
+            if validator is not None and (self.step % t.eval_every == 0 or last):
                 v0 = time.perf_counter()
                 last_val = validator.evaluate(self.ema, self.device, _autocast(self.device, self.amp))
                 metrics |= last_val
                 t_win += time.perf_counter() - v0  # validation time does not count against the training rate
                 log.print(f"[pretrain] validation at step {self.step}: held-out loss "
-                          f"{last_val['val/losses/total']:.4f} (traj {last_val['val/losses/traj']:.4f})\n"
-                          + format_validation(last_val))
+                          f"{last_val['val/losses/total']:.4f} (traj {last_val['val/losses/traj']:.4f}), "
+                          f"first-move cosine leader {last_val['val/first_move_cos_leader']:.3f} follower "
+                          f"{last_val['val/first_move_cos_follower']:.3f}, executed L2 "
+                          f"{last_val['val/l2_executed_m']:.3f} m\n" + format_validation(last_val))
+            if closed is not None and (self.step % t.closed_loop_every == 0 or last):
+                v0 = time.perf_counter()
+                cl = closed.evaluate(self.ema, self.noise, self.spec.samples, self.device)
+                last_val = {k: v for k, v in last_val.items() if not k.startswith("closed_loop/")} | cl
+                metrics |= cl
+                t_win += time.perf_counter() - v0
+                log.print(f"[pretrain] step {self.step}: " + format_closed_loop(cl)
+                          + f" ({cl['time/closed_loop_s']:.0f} s, {int(cl['closed_loop/episodes'])} episodes)")
             if metrics:
                 log.log(self.step, metrics)
-            if self.step % t.checkpoint_every == 0 or self.step == t.steps:  # every rank reports together
+            if self.step % t.checkpoint_every == 0 or last:  # every rank reports together
                 writer = self._writer(last_val) if self.main else None
                 self.backend.report(self.step, {"step": self.step} | _scalars(metrics), writer, t.keep_checkpoints)
         wall = time.perf_counter() - t0
         log.close()
         summary = {"steps": self.step, "resumed_from": start, "samples": (self.step - start) * t.batch_size,
-                   "wall_s": wall, "workers": self.world, "global_batch": t.batch_size,
+                   "wall_s": wall, "train_s": self.train_seconds, "stopped_by_time_budget": bool(out_of_time),
+                   "noise_draws": t.noise_draws, "workers": self.world, "global_batch": t.batch_size,
                    "final": {k: v for k, v in _scalars(metrics).items() if k.startswith("losses/")},
                    "validation": _scalars(last_val), "checkpoint": str(self.out / ckpt.checkpoint_name(self.step))}
         if self.main:
             atomic_write_json(summary, self.out / "summary.json")
         return summary
+
+    def _out_of_time(self) -> bool:
+        """train.time_budget_s spent? Every rank takes rank 0's answer, so DDP workers stop at the same step."""
+        b = self.spec.train.time_budget_s
+        flag = float(b > 0 and self.train_seconds >= b)
+        if self.world > 1 and torch.distributed.is_available() and torch.distributed.is_initialized():
+            x = torch.tensor([flag])
+            torch.distributed.broadcast(x, 0)
+            flag = float(x[0])
+        return bool(flag)
 
     def _writer(self, validation: dict):
         config, state = self.config_dict(_scalars(validation)), self.state()
@@ -330,7 +379,10 @@ def summary_table(summary: dict) -> str:
             ("wall time", duration(summary["wall_s"]))]
     rows += [(k, f"{v:.4f}") for k, v in sorted(summary["final"].items())]
     v = summary.get("validation") or {}
-    rows += [(k, f"{v[k]:.4f}") for k in ("val/losses/total", "val/losses/traj") if k in v]
+    rows += [(k, f"{v[k]:.4f}") for k in ("val/losses/total", "val/losses/traj", "val/first_move_cos_leader",
+                                          "val/first_move_cos_follower", "val/l2_executed_m") if k in v]
+    rows += [(k, f"{v[k]:.3f}") for k in ("closed_loop/success", "closed_loop/reach", "closed_loop/obstacle_collision",
+                                          "closed_loop/inter_collision", "closed_loop/connectivity") if k in v]
     width = max(len(r[0]) for r in rows)
     out = "\n".join(f"{k:<{width}}  {val}" for k, val in rows)
     if v:

@@ -10,6 +10,12 @@ measure, beside the same figures for the trivial "everyone stands still" chunk a
   progress_m    the leader's progress toward the goal over the chunk, metres (straight-line distance)
   l2_m          mean distance to the expert's chunk point at the same time, metres
 
+Move-wise, on the executed moves (the closed loop executes a plan's first `replan_every` moves only):
+
+  val/first_move_cos_leader    cosine of the model's move 0 with the expert's, leaders (expert moves >= 5 cm)
+  val/first_move_cos_follower  the same over followers
+  val/l2_executed_m            mean distance to the expert over the first `executed` points, metres
+
 A model that learned only the goal shows progress with many obstacle points; one that learned the map and the
 team shows progress with violations close to standing still (and to the expert's).
 """
@@ -56,13 +62,13 @@ class Validator:
 
     def __init__(self, bank: EpisodeBank, samples: SampleConfig, loss: LossConfig, schedule: NoiseSchedule,
                  num_prompts: int = 64, ddim_steps: int = 10, d_obs: float = 1.0, d_coll: float = 2.0,
-                 radius: float = 15.0, seed: int = 1234, batch_size: int = 64):
+                 radius: float = 15.0, seed: int = 1234, batch_size: int = 64, executed: int = 2):
         cfg = replace(samples, condition_prob=0.0, subteam_prob=0.0, final_goal_prob=1.0, team_size_weights={})
         rng = np.random.default_rng(seed)
         picks = rng.choice(len(bank), size=num_prompts, replace=num_prompts > len(bank))
         self.samples = [make_sample(bank, int(i), np.random.default_rng([seed, k]), cfg) for k, i in enumerate(picks)]
         self.cfg, self.loss_cfg, self.schedule = cfg, loss, schedule
-        self.ddim_steps, self.seed, self.batch_size = ddim_steps, seed, batch_size
+        self.ddim_steps, self.seed, self.batch_size, self.executed = ddim_steps, seed, batch_size, executed
         self.limits = (d_obs, d_coll, radius)
         self._reference: dict[str, float] | None = None
 
@@ -116,8 +122,29 @@ class Validator:
             batches.append(nb)
         model.train(was_training)
         out = {f"val/{k}": v / count for k, v in sums.items()}
-        m = chunk_metrics(np.concatenate(paths), np.concatenate(experts), _cat(batches), *self.limits)
-        return out | {f"val/model/{k}": v for k, v in m.items()} | self.reference()
+        paths, experts, nb = np.concatenate(paths), np.concatenate(experts), _cat(batches)
+        m = chunk_metrics(paths, experts, nb, *self.limits)
+        return out | {f"val/model/{k}": v for k, v in m.items()} | executed_moves(paths, experts, nb, self.executed) \
+            | self.reference()
+
+
+def executed_moves(paths: np.ndarray, expert: np.ndarray, batch: dict, executed: int = 2,
+                   min_move: float = 0.05) -> dict[str, float]:
+    """First-move cosine (leaders, followers) and L2 over the executed points; paths, expert (V, R, H, 2) m."""
+    start = batch["start"]  # (V, R, 2)
+    real = batch["robot_mask"] > 0
+    lead = batch["goal_mask"] > 0
+    a, b = paths[:, :, 0] - start, expert[:, :, 0] - start  # move 0, (V, R, 2)
+    na, nb = np.linalg.norm(a, axis=-1), np.linalg.norm(b, axis=-1)
+    cos = (a * b).sum(-1) / np.maximum(na * nb, 1e-9)
+    cos = np.where(na < 1e-6, 0.0, cos)  # a model that stands still where the expert moves scores 0
+    moving = real & (nb >= min_move)
+    l2 = np.linalg.norm(paths[:, :, :executed] - expert[:, :, :executed], axis=-1).mean(-1)  # (V, R)
+
+    def mean(x, m):
+        return float(x[m].mean()) if m.any() else float("nan")
+    return {"val/first_move_cos_leader": mean(cos, moving & lead), "val/first_move_cos_follower": mean(cos, moving & ~lead),
+            "val/l2_executed_m": mean(l2, real)}
 
 
 def _cat(batches: list[dict]) -> dict:

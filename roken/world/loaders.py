@@ -142,6 +142,6 @@ def find_map_files(spec: str) -> list[Path]:
     else:
         files = sorted(Path(f) for f in glob.glob(spec) if Path(f).suffix.lower() in MAP_SUFFIXES)
     if not files:
-        raise MapError(spec, "no map files found; pass 'train', 'eval', a folder, a glob or a file "
+        raise MapError(spec, "no map files found; pass 'train', 'val', 'eval', a folder, a glob or a file "
                              "of .map / .npy / .png maps")
     return files

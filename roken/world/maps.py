@@ -20,7 +20,9 @@ from scipy.ndimage import binary_dilation, binary_erosion, label
 from .geometry import inflate_free
 from .grid import GridMap
 
-SPLITS = {"train": 1, "eval": 2}
+# Three disjoint random streams: train (learning), val (choosing checkpoints and recipes), eval (reporting).
+# A model must never be selected on the maps it is reported on, so validation has a split of its own.
+SPLITS = {"train": 1, "eval": 2, "val": 3}
 # (k, a_low, a_high) of the paper's map source
 BLOCK_RECIPES = ((7, 0.06, 0.09), (5, 0.10, 0.14), (3, 0.35, 0.40))
 
@@ -33,6 +35,7 @@ class MapConfig:
     seed: int = 0
     train_maps: int = 5000
     eval_maps: int = 1000
+    val_maps: int = 500
     min_open_extent: float = 60.0  # a generated map's largest safe region must span at least this (m)
     max_scale_up: int = 4  # external maps: largest integer up-scaling of a small grid
 
@@ -166,7 +169,7 @@ def largest_safe_extent(occupancy: np.ndarray) -> float:
 
 
 def generate_map(cfg: MapConfig, split: str, index: int) -> GridMap:
-    """Map `index` of `split` ("train" or "eval"): deterministic in (cfg.seed, split, index)."""
+    """Map `index` of `split` ("train", "val" or "eval"): deterministic in (cfg.seed, split, index)."""
     if split not in SPLITS:
         raise ValueError(f"unknown split {split!r}; use one of {sorted(SPLITS)}")
     names = sorted(cfg.families)
@@ -187,4 +190,4 @@ def generate_map(cfg: MapConfig, split: str, index: int) -> GridMap:
 
 
 def split_size(cfg: MapConfig, split: str) -> int:
-    return cfg.train_maps if split == "train" else cfg.eval_maps
+    return {"train": cfg.train_maps, "val": cfg.val_maps, "eval": cfg.eval_maps}[split]
