@@ -23,7 +23,8 @@ from roken.train.loop import Pretraining, PretrainSpec
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["model.width=64", "model.depth=2", "model.heads=4", "model.mlp_hidden=128", "model.map_channels=16",
         "model.map_blocks=1", "train.batch_size=4", "train.loader_workers=0", "train.val_fraction=0.34",
-        "train.val_prompts=4", "train.log_every=1", "train.warmup_steps=2"]
+        "train.val_prompts=4", "train.log_every=1", "train.warmup_steps=2",
+        "train.closed_loop_every=0"]  # closed-loop validation has its own tests (test_cpu_training.py)
 
 
 def spec(*extra) -> PretrainSpec:

@@ -13,7 +13,7 @@ from roken.train import checkpoint as ckpt
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["--preset", "tiny", "--batch-size", "8", "--set", "train.loader_workers=0", "--set", "train.log_every=1",
         "--set", "train.val_fraction=0.34", "--set", "train.val_prompts=4", "--set", "train.eval_every=3",
-        "--set", "train.checkpoint_every=3", "--set", "train.warmup_steps=2"]
+        "--set", "train.checkpoint_every=3", "--set", "train.warmup_steps=2", "--set", "train.closed_loop_every=0"]
 
 
 def pretrain(data, out, steps, *extra, env=None, ray_tmp=None):

@@ -86,7 +86,8 @@ def test_job_submit_pretrains_with_two_ddp_workers(head, tmp_path, expert_datase
                         "python", "pipelines/pretrain.py", "--data", expert_dataset, "--out", str(out),
                         "--preset", "tiny", "--steps", "2", "--batch-size", "4", "--workers", "2",
                         "--set", "train.loader_workers=0", "--set", "train.val_fraction=0.34",
-                        "--set", "train.val_prompts=2", "--set", "train.log_every=1"],
+                        "--set", "train.val_prompts=2", "--set", "train.log_every=1",
+                        "--set", "train.closed_loop_every=0"],
                        env=head, capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert "succeeded" in r.stdout + r.stderr and "2 x 2 worker(s)" in r.stdout + r.stderr
@@ -97,7 +98,7 @@ def test_job_submit_pretrains_with_two_ddp_workers(head, tmp_path, expert_datase
 def test_one_ray_train_worker_matches_the_in_process_first_step(head, tmp_path, expert_dataset):
     tiny = ["--data", expert_dataset, "--preset", "tiny", "--steps", "1", "--batch-size", "8", "--set",
             "train.loader_workers=0", "--set", "train.log_every=1", "--set", "train.val_fraction=0.34",
-            "--set", "train.val_prompts=2"]
+            "--set", "train.val_prompts=2", "--set", "train.closed_loop_every=0"]
     local = pipeline("pretrain.py", tiny + ["--out", str(tmp_path / "local"), "--workers", "0"], head)
     assert local.returncode == 0, local.stderr[-2000:]
     remote = pipeline("pretrain.py", tiny + ["--out", str(tmp_path / "ray"), "--address", head["GCS"],
