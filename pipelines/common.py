@@ -35,6 +35,20 @@ def fail(e: Exception) -> int:
     return 2
 
 
+def interrupted(stage: str, out: str, step: int | None) -> int:
+    """Ctrl-C in a training pipeline: where it stopped, what is kept, how to go on; exit 130 like a shell."""
+    from roken.train import checkpoint as ckpt
+
+    try:
+        found = ckpt.list_checkpoints(out)
+        kept = f"checkpoint at step {ckpt.read_config(found[-1]).get('step')}" if found else "no checkpoint yet"
+    except (OSError, ValueError):
+        kept = "no checkpoint yet"
+    at = f" at step {step}" if step is not None else ""
+    print(f"[{stage}] interrupted{at}; {kept} in {out}; re-run the same command to resume", file=sys.stderr)
+    return 130
+
+
 def add_common_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--config", help="YAML config file (see configs/)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

@@ -19,7 +19,8 @@ import os
 import sys
 from pathlib import Path
 
-from common import USER_ERRORS, add_common_args, explain_relative_out, fail, make_runner, named_overrides
+from common import (USER_ERRORS, add_common_args, explain_relative_out, fail, interrupted, make_runner,
+                    named_overrides)
 
 from roken.config import load_config
 from roken.configtools import with_overrides
@@ -66,6 +67,7 @@ def _gpus(args) -> float:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
+    pt = None
     try:
         cfg = load_config(args.config, named_overrides(args, "rl", ("iterations", "prompts_per_iteration",
                                                                     "group_size", "eval_episodes")))
@@ -87,6 +89,8 @@ def main(argv=None) -> int:
             print(before_after(cfg, pt.blob["path"], out, cfg.rl.eval_episodes, args))
     except USER_ERRORS as e:
         return fail(e)
+    except KeyboardInterrupt:
+        return interrupted("posttrain", os.path.abspath(args.out), getattr(pt, "iteration", None))
     return 0
 
 

@@ -21,7 +21,8 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
-from common import ROOT, USER_ERRORS, add_common_args, explain_relative_out, fail, named_overrides, wants_ray
+from common import (ROOT, USER_ERRORS, add_common_args, explain_relative_out, fail, interrupted, named_overrides,
+                    wants_ray)
 
 from roken.config import load_config
 from roken.configtools import from_dict, to_dict
@@ -47,6 +48,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--preset", choices=sorted(PRESETS), help="model size (sets the model section over --config)")
     ap.add_argument("--steps", type=int, help="optimizer steps (train.steps)")
     ap.add_argument("--batch-size", type=int, help="global batch (train.batch_size), split over the workers")
+    ap.add_argument("--device", help="auto (CUDA where available), cpu or cuda (train.device)")
     ap.add_argument("--gpus-per-worker", type=float, default=0.0, help="GPUs per Ray Train worker (0 = CPU, gloo)")
     ap.add_argument("--cpus-per-worker", type=float, default=1.0, help="CPUs per Ray Train worker")
     ap.add_argument("--max-failures", type=int, default=3, help="worker-group restarts from the last checkpoint")
@@ -56,8 +58,8 @@ def parser() -> argparse.ArgumentParser:
 
 def overrides(args) -> list[str]:
     pre = [f"model.{k}={v}" for k, v in asdict(preset(args.preset)).items()] if args.preset else []
-    renamed = argparse.Namespace(set=args.set, steps=args.steps, batch_size=args.batch_size)
-    return pre + named_overrides(renamed, "train", ("steps", "batch_size"))
+    renamed = argparse.Namespace(set=args.set, steps=args.steps, batch_size=args.batch_size, device=args.device)
+    return pre + named_overrides(renamed, "train", ("steps", "batch_size", "device"))
 
 
 def check_resume(out: str, cfg) -> int:
@@ -111,6 +113,7 @@ def _absolute(location: str | None) -> str | None:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
+    out, run = args.out, None
     try:
         cfg = load_config(args.config, overrides(args))
         explain_relative_out(args.out)
@@ -118,6 +121,8 @@ def main(argv=None) -> int:
             raise ValueError(f"--out {args.out}: pretraining writes its run folder on a file system; give a local "
                              f"or shared (NFS) path")
         out = os.path.abspath(args.out)
+        if os.path.exists(out) and not os.path.isdir(out):
+            raise ValueError(f"--out {args.out}: is a file; the run folder must be a folder (a new or an existing run)")
         args.data, args.val_data = _absolute(args.data), _absolute(args.val_data)  # Ray workers have another cwd
         for d, role in ((args.data, "--data"), (args.val_data, "--val-data")):
             if d:
@@ -132,13 +137,17 @@ def main(argv=None) -> int:
                   f"(or train.time_budget_s) to train on. Its summary:", file=sys.stderr)
             print(summary_table(json.loads(done.read_text())))
             return 0
+        run = None
         if wants_ray(args):
             run_ray(args, cfg, out)
         else:
-            Pretraining(PretrainSpec.of(cfg), args.data, out, args.val_data).fit()
+            run = Pretraining(PretrainSpec.of(cfg), args.data, out, args.val_data)
+            run.fit()
         summary = json.loads((Path(out) / "summary.json").read_text())
     except USER_ERRORS as e:
         return fail(e)
+    except KeyboardInterrupt:
+        return interrupted("pretrain", out, getattr(run, "step", None))
     print(summary_table(summary))
     return 0
 

@@ -79,6 +79,8 @@ def cmd_validate(args) -> int:
 def cmd_export(args) -> int:
     from .train.export import export
 
+    if args.notes and not Path(args.notes).is_file():
+        raise ValueError(f"--notes {args.notes}: no such file (a Markdown file appended to the model card)")
     notes = Path(args.notes).read_text() if args.notes else ""
     print(export(args.source, args.out, args.which, notes))
     return 0
@@ -102,6 +104,8 @@ def main(argv: list[str] | None = None) -> int:
         return cmd_quickstart(argv[1:])
     ap = argparse.ArgumentParser(prog="roken", description=__doc__)
     sub = ap.add_subparsers(dest="cmd", required=True)
+    sub.add_parser("quickstart", help="the main job on embedded defaults: generate, pretrain briefly, evaluate, "
+                                      "report (roken quickstart --help)")
     p = sub.add_parser("plot", help="draw one episode of a dataset / evaluation folder as a PNG")
     p.add_argument("run", help="folder with maps/ and episodes/")
     p.add_argument("--episode", help="episode_id (default: --index)")
@@ -127,6 +131,9 @@ def main(argv: list[str] | None = None) -> int:
     x.add_argument("--notes", help="a Markdown file appended to the model card")
     x.set_defaults(fn=cmd_export)
     args = ap.parse_args(argv)
+    if getattr(args, "every", 1) < 1:
+        print(f"error: --every {args.every}: must be >= 1 (simulator steps per frame)", file=sys.stderr)
+        return 2
     try:
         return args.fn(args)
     except (ConfigError, ValueError, OSError) as e:

@@ -109,22 +109,34 @@ def check(ec: EvalConfig) -> None:
         raise ValueError(f"eval.unit_episodes={ec.unit_episodes}: must be >= 1")
 
 
-def _refuse_other_config(out: str, cfg) -> None:
-    """An evaluation folder made with another config is not overwritten silently (as generate.py refuses);
-    other team sizes may be added to it."""
+# plan fields that do not change a Roken episode (where and how fast it runs)
+PLAN_RUNTIME_KEYS = ("device", "batch_size", "record_plans")
+
+
+def _refuse_other_config(out: str, cfg, model_id: str = "") -> None:
+    """An evaluation folder made with another config, or (for Roken rows) another checkpoint or plan section,
+    is not overwritten silently (as generate.py refuses); other team sizes may be added to it."""
     from ..data.build import changed_keys
 
     path = fs.join(out, "metrics.json")
     if not fs.exists(path):
         return
     try:
-        old = read_json(path).get("config", {})
+        metrics = read_json(path)
+        old = metrics.get("config", {})
     except (OSError, ValueError):
         return
     new = json.loads(json.dumps(to_dict(cfg), default=str))
     keys = ("map", "task", "expert", "eval")
     changed = [c for c in changed_keys({k: old.get(k) for k in keys}, {k: new[k] for k in keys})
                if not c.startswith(("eval.robots", "eval.planner"))]
+    old_model = (metrics.get("model") or {}).get("sha256")
+    if model_id and old_model:  # both evaluations ran Roken: the same weights and plan settings, or refuse
+        if old_model != model_id:
+            changed.append(f"checkpoint: sha256 {old_model} -> {model_id}")
+        plan_old = {k: v for k, v in (old.get("plan") or {}).items() if k not in PLAN_RUNTIME_KEYS + ("checkpoint",)}
+        plan_new = {k: v for k, v in new["plan"].items() if k not in PLAN_RUNTIME_KEYS + ("checkpoint",)}
+        changed += changed_keys(plan_old, plan_new, "plan.")
     if changed:
         raise StoreError(f"{out} holds an evaluation made with a different config ({'; '.join(changed[:6])}); "
                          f"nothing was written. Use a new --out, or --overwrite to replace it")
@@ -239,8 +251,10 @@ def load_model(cfg) -> tuple[dict | None, str]:
     check_plan(cfg.plan)
     if not cfg.plan.checkpoint:
         raise ValueError("--planner roken needs --checkpoint PATH: a checkpoint directory or a run folder "
-                         "(the shipped model: --checkpoint models/roken-small-mixed)")
+                         "(the shipped models: --checkpoint models/roken-cpu-four, models/roken-small-mixed)")
     blob = RokenPlanner.pack(cfg.plan.checkpoint, cfg.plan.which, cfg.task.max_step)
+    planner = RokenPlanner.unpack(blob, "cpu")  # loaded once here: a bad checkpoint fails before any write
+    check_plan(cfg.plan, planner)
     max_robots = blob["config"]["samples"]["max_robots"]
     if not cfg.plan.cluster_size and max(cfg.eval.robots) > max_robots:
         raise ValueError(f"--robots {max(cfg.eval.robots)}: the model plans at most {max_robots} robots in one "
@@ -257,9 +271,9 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
     in-process) runs them, so --workers 0 and any number of Ray workers give identical episodes."""
     check(cfg.eval)
     out = str(out)
-    if not overwrite:
-        _refuse_other_config(out, cfg)
     blob, model_id = load_model(cfg)
+    if not overwrite:
+        _refuse_other_config(out, cfg, model_id)
     planners = planner_names(cfg.eval, cfg.plan)
     runner = runner or InProcessRunner()
     t0 = time.perf_counter()

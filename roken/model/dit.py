@@ -77,6 +77,24 @@ def check(cfg: ModelConfig) -> None:
         raise ValueError(f"model.map_encoder must be one of {', '.join(MAP_ENCODERS)}, got {cfg.map_encoder!r}")
     if cfg.local_crop < 0:
         raise ValueError(f"model.local_crop must be >= 0 (0 = off), got {cfg.local_crop}")
+    problems = []
+    if min(cfg.width, cfg.depth, cfg.heads, cfg.mlp_hidden, cfg.map_patch, cfg.horizon, cfg.freq_dim) < 1:
+        problems.append("model.width, depth, heads, mlp_hidden, map_patch, horizon and freq_dim must be >= 1")
+    elif cfg.width % cfg.heads:
+        problems.append(f"model.width={cfg.width} is not divisible by model.heads={cfg.heads}")
+    if cfg.width % 4:
+        problems.append(f"model.width={cfg.width} must be a multiple of 4 (2-D sinusoidal position features)")
+    if cfg.freq_dim % 2:
+        problems.append(f"model.freq_dim={cfg.freq_dim} must be even (cos and sin halves)")
+    if cfg.map_patch >= 1 and cfg.canvas % cfg.map_patch:
+        problems.append(f"model.map_patch={cfg.map_patch} does not divide model.canvas={cfg.canvas}")
+    if cfg.map_encoder == "resnet" and (cfg.map_patch % 2 or cfg.map_channels % 8 or cfg.map_channels < 8):
+        problems.append(f"the resnet map encoder needs an even model.map_patch (got {cfg.map_patch}) and "
+                        f"model.map_channels a multiple of 8 (GroupNorm of 8 groups; got {cfg.map_channels})")
+    if cfg.depth >= 1 and not -1 <= cfg.occ_layer < cfg.depth:
+        problems.append(f"model.occ_layer={cfg.occ_layer} must be -1 (the middle layer) or a layer 0..{cfg.depth - 1}")
+    if problems:
+        raise ValueError("; ".join(problems))
 
 
 def modulate(x, shift, scale):

@@ -73,9 +73,16 @@ class RokenPlanner:
 
         from ..train.checkpoint import load_weights
 
+        from ..train.checkpoint import CheckpointError
+
         cfg, dev = blob["config"], pick_device(device)
         model = RokenDiT(from_dict(ModelConfig, cfg["model"], "model."))
-        load_weights(model, load_bytes(blob["weights"]), blob["path"])
+        try:
+            weights = load_bytes(blob["weights"])
+        except Exception as e:  # noqa: BLE001  (safetensors' own error type for a truncated or damaged file)
+            raise CheckpointError(f"{blob['path']}/model.safetensors: not a readable safetensors file ({e}); the "
+                                  f"checkpoint is corrupt or was cut short: re-export or re-train it") from None
+        load_weights(model, weights, blob["path"])
         sched = NoiseSchedule(from_dict(DiffusionConfig, cfg["diffusion"], "diffusion."), dev)
         return cls(model.to(dev), sched, from_dict(SampleConfig, cfg["samples"], "samples."), dev, dtype, blob["path"])
 

@@ -83,6 +83,9 @@ class PostTraining:
         source = PromptSource(bank, self.tc, rc.min_future, team_sizes(rc), cfg.max_robots)
         hard = HardPrompts(rc.hard_store_size, rc.hard_temperature, rc.seed)
         resume, start = self._resume_point()
+        done = self.out / "summary.json"
+        if resume is not None and start >= rc.iterations and done.is_file():
+            return read_summary(self.out)  # a finished run: its summary as written, nothing rewritten
         if resume is not None:
             s = ckpt.load_train_state(resume)
             policy.load_state_dict(s["policy"])
@@ -101,6 +104,7 @@ class PostTraining:
         self._ctx, self._bank, self._source, self._hard, self._log = ctx, bank, source, hard, log
         buf = None
         for it in range(start, rc.iterations):
+            self.iteration = it  # where a Ctrl-C stopped it
             if buf is None:  # synchronous, or the first buffer of an overlapped run
                 buf = self._collect(it, self._publish(policy, it))
             nxt, idle_s = None, buf["seconds"]  # synchronous: the learner waits while the buffer is sampled

@@ -71,6 +71,9 @@ def write_atomic(run_dir: str | Path, step: int, fill) -> Path:
     if final.exists():
         return final
     tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{final.name}-", dir=run))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes 0700; a checkpoint is an output like any other (the umask's)
     try:
         fill(tmp)
         os.rename(tmp, final)

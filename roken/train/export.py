@@ -19,16 +19,35 @@ def export(source: str | Path, out: str | Path, which: str = "latest", notes: st
     loaded = ckpt.load(src)  # fails here, naming the file, on anything the planner could not load
     cfg = loaded.config
     dest = Path(out)
+    if dest.resolve() == src.resolve() or dest.resolve() in src.resolve().parents:
+        raise ValueError(f"roken export {source} {out}: the output is the source checkpoint (or holds it); export "
+                         f"into another folder")
     if dest.exists() and not (dest / ckpt.CONFIG).is_file():
         raise ValueError(f"{dest} exists and is not a checkpoint directory; choose another output folder")
     tmp = dest.parent / f".tmp-{dest.name}"
     shutil.rmtree(tmp, ignore_errors=True)
     ckpt.write(tmp, load_file(str(src / ckpt.WEIGHTS)), cfg, half=True)
-    (tmp / "MODEL_CARD.md").write_text(model_card(cfg, src, loaded.model.num_params(), notes))
+    card = model_card(cfg, src, loaded.model.num_params(), notes)
+    (tmp / "MODEL_CARD.md").write_text(keep_sections(card, src / "MODEL_CARD.md"))
     if dest.exists():  # replace a shipped model, not add one beside it
         shutil.rmtree(dest)
     tmp.rename(dest)
     return dest
+
+
+def keep_sections(card: str, old_card: Path) -> str:
+    """The new card plus every `## ` section of the source's card that the new one does not have (a card is
+    never shortened by re-exporting: "How it was made", validation histories, ...)."""
+    if not old_card.is_file():
+        return card
+    have = {line.strip() for line in card.splitlines() if line.startswith("## ")}
+    extra, keep = [], False
+    for line in old_card.read_text().splitlines():
+        if line.startswith("## "):
+            keep = line.strip() not in have
+        if keep:
+            extra.append(line)
+    return card.rstrip() + ("\n\n" + "\n".join(extra).strip() + "\n" if extra else "\n")
 
 
 def model_card(cfg: dict, src: Path, params: int, notes: str) -> str:

@@ -27,7 +27,7 @@ from ..data.loader import to_device
 from ..data.store import atomic_write_json
 from ..data.samples import SampleConfig
 from ..model.diffusion import DiffusionConfig, NoiseSchedule
-from ..model.dit import ModelConfig, RokenDiT
+from ..model.dit import ModelConfig, RokenDiT, check as check_model
 from ..model.losses import LossConfig, check as check_loss, pretraining_loss
 from ..plan.rollout import PlanConfig
 from ..world.maps import MapConfig
@@ -37,6 +37,10 @@ from .data import SampleStream, fingerprint, load_banks, make_loader
 from .logger import RunLogger, duration
 from .closed_loop import format_closed_loop
 from .validation import Validator, format_validation
+
+
+class Diverged(ValueError):
+    """A non-finite loss or gradient: the run stops, keeping its last good checkpoint."""
 
 
 @dataclass
@@ -139,6 +143,7 @@ class Pretraining:
                  backend=None, log_stream=None):
         check(spec.train)
         check_loss(spec.loss)
+        check_model(spec.model)
         ckpt.cross_check(spec.model, spec.samples, spec.task.max_step, "config")
         self.spec, self.data, self.out = spec, data, Path(out)
         t = spec.train
@@ -206,9 +211,17 @@ class Pretraining:
         with torch.autocast(self.device.type, dtype=torch.bfloat16) if self.amp else nullcontext():
             loss, logs = pretraining_loss(self.net, self.noise, batch, self.spec.loss, self.spec.samples,
                                           step=self.step, draws=t.noise_draws)
+        if not torch.isfinite(loss):  # stop before a non-finite backward (lr 1e12 segfaulted there)
+            bad = [k[7:] for k, v in logs.items() if k != "losses/total" and not torch.isfinite(v)]
+            raise Diverged(f"training diverged at step {self.step}: the loss is {float(loss)} (non-finite terms: "
+                           f"{', '.join(bad) or 'the weighted sum'}); the last good checkpoint is kept. Lower "
+                           f"train.lr (now {t.lr:g}) or keep train.warmup_steps > 0")
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), t.grad_clip if t.grad_clip > 0 else float("inf"))
+        if not torch.isfinite(norm):
+            raise Diverged(f"training diverged at step {self.step}: the gradient norm is {float(norm)} (loss "
+                           f"{float(loss):.4g}); the last good checkpoint is kept. Lower train.lr (now {t.lr:g})")
         self.opt.step()
         self.sched.step()
         self._ema_update()

@@ -1,0 +1,89 @@
+"""What a new user hit in training, planning and post-training (issue 19): re-running finished runs, checkpoint and
+model-config errors up front, divergence, exporting into the source, evaluation data as training data, and the
+README's two set-up lines. Each feeds the input and checks the exit code, the message and what was written."""
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SHIPPED = ROOT / "models" / "roken-small-mixed"
+TINY = ["--preset", "tiny", "--batch-size", "4", "--set", "train.loader_workers=0", "--set", "train.val_fraction=0.34",
+        "--set", "train.val_prompts=2", "--set", "train.closed_loop_every=0", "--set", "train.log_every=1",
+        "--workers", "0"]
+
+
+def run(script, *args):
+    return subprocess.run([sys.executable, str(ROOT / "pipelines" / script), *args], capture_output=True, text=True,
+                          timeout=300)
+
+
+def test_readme_has_the_two_setup_commands_and_ci_runs_the_first():
+    lines = (ROOT / "README.md").read_text().splitlines()
+    assert lines[0] == 'pip install torch==2.13.0 -e ".[test]" && python -m pytest -q'
+    assert lines[1] == "pip install torch==2.13.0 -e . && roken quickstart --out runs/quickstart"
+    assert 'bash -c "$(sed -n 1p README.md)"' in (ROOT / ".ci" / "run").read_text()
+
+
+def test_rerun_of_a_finished_pretraining_prints_its_summary(expert_dataset, tmp_path):
+    out = tmp_path / "run"
+    args = ["--data", expert_dataset, "--out", str(out), "--steps", "2", *TINY]
+    assert run("pretrain.py", *args).returncode == 0
+    before = (out / "summary.json").read_text()
+    r = run("pretrain.py", *args)
+    assert r.returncode == 0 and "is finished" in r.stderr and "checkpoint:" in r.stdout, r.stderr[-2000:]
+    assert (out / "summary.json").read_text() == before
+
+
+@pytest.mark.parametrize("sets,message", [
+    (["--set", "model.width=90"], "model.width=90 is not divisible by model.heads=4"),
+    (["--set", "train.lr=1e12", "--set", "train.warmup_steps=0", "--set", "train.grad_clip=0"], "training diverged"),
+])
+def test_model_config_and_divergence_errors_are_one_line(expert_dataset, tmp_path, sets, message):
+    out = tmp_path / "run"
+    r = run("pretrain.py", "--data", expert_dataset, "--out", str(out), "--steps", "6", *TINY, *sets)
+    assert r.returncode == 2 and message in r.stderr and "Traceback" not in r.stderr, r.stderr[-2000:]
+    if "width" in message:
+        assert not out.exists()
+
+
+def test_an_evaluation_folder_is_refused_as_training_data(tmp_path):
+    ev = tmp_path / "ev"
+    assert run("evaluate.py", "--robots", "2", "--episodes", "2", "--num-maps", "2", "--workers", "0",
+               "--out", str(ev)).returncode == 0
+    r = run("pretrain.py", "--data", str(ev), "--out", str(tmp_path / "run"), *TINY)
+    assert r.returncode == 2 and "evaluation folder" in r.stderr and not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("case", ["truncated", "replan"])
+def test_checkpoint_errors_come_before_anything_is_written(tmp_path, case):
+    ck = SHIPPED
+    extra = []
+    if case == "truncated":
+        ck = tmp_path / "ck"
+        shutil.copytree(SHIPPED, ck)
+        w = ck / "model.safetensors"
+        w.write_bytes(w.read_bytes()[:1000])
+    else:
+        extra = ["--replan-every", "17"]
+    r = run("evaluate.py", "--planner", "roken", "--checkpoint", str(ck), "--robots", "2", "--episodes", "2",
+            "--num-maps", "2", "--workers", "0", "--out", str(tmp_path / "ev"), *extra)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-2000:]
+    assert ("safetensors" in r.stderr) if case == "truncated" else ("--replan-every 17" in r.stderr)
+    assert not (tmp_path / "ev").exists()
+
+
+def test_export_into_itself_is_refused_and_cards_keep_their_sections(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "roken", "export", str(SHIPPED), str(SHIPPED)], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 2 and "is the source" in r.stderr
+    out = tmp_path / "copy"
+    r = subprocess.run([sys.executable, "-m", "roken", "export", str(SHIPPED), str(out)], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    old = [x for x in (SHIPPED / "MODEL_CARD.md").read_text().splitlines() if x.startswith("## ")]
+    new = (out / "MODEL_CARD.md").read_text()
+    assert all(h in new for h in old)
