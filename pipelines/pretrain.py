@@ -24,7 +24,7 @@ from pathlib import Path
 from common import (ROOT, USER_ERRORS, add_common_args, explain_relative_out, fail, interrupted, named_overrides,
                     wants_ray)
 
-from roken.config import load_config
+from roken.config import Config, load_config
 from roken.configtools import from_dict, to_dict
 from roken.data.build import changed_keys
 from roken.data.store import StoreError
@@ -71,9 +71,11 @@ def check_resume(out: str, cfg) -> int:
         return 0
     old = ckpt.read_config(found[-1])
     new = to_dict(cfg)
+    defaults = json.loads(json.dumps(to_dict(Config()), default=str))  # options newer than the run: their defaults
     changed = []
     for sec in RESUME_SECTIONS:
-        changed += changed_keys(old.get(sec, {}), json.loads(json.dumps(new[sec], default=str)), sec + ".")
+        changed += changed_keys(defaults[sec] | old.get(sec, {}), json.loads(json.dumps(new[sec], default=str)),
+                                sec + ".")
     changed += changed_keys({k: old.get("train", {}).get(k) for k in RESUME_TRAIN_KEYS},
                              {k: new["train"][k] for k in RESUME_TRAIN_KEYS}, "train.")
     if changed:

@@ -61,7 +61,31 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, help="0 = in-process, no Ray (default: a private --local cluster)")
     a = ap.parse_args(argv)
     out = Path(a.out).resolve()
+    if out.exists() and not out.is_dir():
+        print(f"error: --out {a.out}: is a file; the quickstart writes a folder there", file=sys.stderr)
+        return 2
+    marker = out / ".quickstart.json"
+    settings = {"episodes": a.episodes, "steps": a.steps, "shipped": str(SHIPPED.relative_to(ROOT))}
+    if out.is_dir() and any(out.iterdir()):
+        try:
+            mine = json.loads(marker.read_text())
+        except (OSError, ValueError):
+            mine = None
+        if mine is None:
+            print(f"error: --out {a.out}: the folder holds files the quickstart did not make "
+                  f"({', '.join(sorted(p.name for p in out.iterdir())[:5])}); choose a new or empty folder",
+                  file=sys.stderr)
+            return 2
+        if mine.get("settings") != settings:
+            print(f"error: --out {a.out}: a quickstart with other settings ({mine.get('settings')}) is there; "
+                  f"choose a new folder or the same settings", file=sys.stderr)
+            return 2
+        if mine.get("complete") and (out / "report.md").is_file():  # finished: reuse everything, rewrite nothing
+            print((out / "report.md").read_text())
+            print(f"report: {out / 'report.md'} (finished earlier; nothing was rerun)")
+            return 0
     out.mkdir(parents=True, exist_ok=True)
+    marker.write_text(json.dumps({"settings": settings, "complete": False}))
     where = ["--workers", "0"] if a.workers == 0 else ["--local"]
     t = {}
     t["generate"] = stage("1/4 expert dataset: 24 training maps x 4 episodes", "generate.py",
@@ -103,6 +127,7 @@ def main(argv=None) -> int:
     lines += ["", "![rows](rows.png)"] + [f"![{f}]({f})" for f in figs]
     lines += ["", "| stage | seconds |", "|---|---|"] + [f"| {k} | {v:.0f} |" for k, v in t.items()]
     (out / "report.md").write_text("\n".join(lines) + "\n")
+    marker.write_text(json.dumps({"settings": settings, "complete": True}))
     print("\n" + "\n".join(lines[4:4 + 2 + len(rows)]))
     print(f"\nreport: {out / 'report.md'}  (total {sum(t.values()) / 60:.1f} min)")
     return 0

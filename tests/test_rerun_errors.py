@@ -87,3 +87,11 @@ def test_export_into_itself_is_refused_and_cards_keep_their_sections(tmp_path):
     old = [x for x in (SHIPPED / "MODEL_CARD.md").read_text().splitlines() if x.startswith("## ")]
     new = (out / "MODEL_CARD.md").read_text()
     assert all(h in new for h in old)
+
+
+def test_quickstart_refuses_a_folder_it_did_not_make(tmp_path):
+    (tmp_path / "report.md").write_text("mine")
+    r = subprocess.run([sys.executable, "-m", "roken", "quickstart", "--out", str(tmp_path), "--workers", "0"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "did not make" in r.stderr
+    assert (tmp_path / "report.md").read_text() == "mine"

@@ -116,6 +116,14 @@ class TimestepEmbedder(nn.Module):
         return self.mlp(torch.cat([args.cos(), args.sin()], dim=-1))
 
 
+def patch_positions(cfg: ModelConfig) -> torch.Tensor:
+    """(M, width) sinusoidal embeddings of the map patches' centres (metres), row-major patches."""
+    n = cfg.canvas // cfg.map_patch
+    centres = (torch.arange(n, dtype=torch.float32) + 0.5) * cfg.map_patch
+    grid = torch.stack(torch.meshgrid(centres, centres, indexing="xy"), dim=-1).reshape(-1, 2)  # (M, 2) = (x, y)
+    return sincos_2d(grid, cfg.width)
+
+
 class BasicBlock(nn.Module):
     """ResNet basic block; GroupNorm instead of BatchNorm because a plan's batch is G copies of one map."""
 
@@ -139,10 +147,7 @@ class MapEncoder(nn.Module):
         self.blocks = nn.Sequential(*[BasicBlock(c) for _ in range(cfg.map_blocks)])
         p = cfg.map_patch // 2  # patch side in half-resolution cells
         self.patch = nn.Conv2d(c, cfg.width, p, stride=p)
-        n = cfg.canvas // cfg.map_patch
-        centres = (torch.arange(n, dtype=torch.float32) + 0.5) * cfg.map_patch  # metres
-        grid = torch.stack(torch.meshgrid(centres, centres, indexing="xy"), dim=-1).reshape(-1, 2)  # (M, 2) = (x, y)
-        self.register_buffer("pos", sincos_2d(grid, cfg.width), persistent=False)  # (M, width)
+        self.register_buffer("pos", patch_positions(cfg), persistent=False)  # (M, width)
         self.norm = nn.LayerNorm(cfg.width)
 
     def forward(self, m: torch.Tensor) -> torch.Tensor:
@@ -177,10 +182,7 @@ class PatchMapEncoder(nn.Module):
         super().__init__()
         self.patch = nn.Conv2d(3, cfg.width, cfg.map_patch, stride=cfg.map_patch)
         self.blocks = nn.Sequential(*[ConvNeXtBlock(cfg.width) for _ in range(cfg.map_blocks)])
-        n = cfg.canvas // cfg.map_patch
-        centres = (torch.arange(n, dtype=torch.float32) + 0.5) * cfg.map_patch
-        grid = torch.stack(torch.meshgrid(centres, centres, indexing="xy"), dim=-1).reshape(-1, 2)
-        self.register_buffer("pos", sincos_2d(grid, cfg.width), persistent=False)
+        self.register_buffer("pos", patch_positions(cfg), persistent=False)
         self.norm = nn.LayerNorm(cfg.width)
 
     def forward(self, m: torch.Tensor) -> torch.Tensor:

@@ -58,6 +58,10 @@ class LossConfig:
     sdf_ramp_steps: int = 0  # steps to reach the full lambda_4 (0 = at once)
     sdf_mode: str = "paper"  # paper | off | stopgrad | low_noise (module docstring)
     sdf_max_k: int = 10  # low_noise: the trajectory penalty applies to draws with k < sdf_max_k
+    # L_traj weight of the first `executed_moves` chunk moves (the ones the closed loop executes) relative to the
+    # others; the weights are normalised to mean 1 over the chunk, so 1.0 is the paper's uniform mean
+    executed_weight: float = 1.0
+    executed_moves: int = 2
 
     def __post_init__(self):
         if self.sdf_mode in (False, "False", "false", "no"):  # YAML reads a bare `off` as false
@@ -78,7 +82,8 @@ def check(cfg: LossConfig) -> None:
         raise ValueError(f"loss.sdf_mode must be one of {', '.join(SDF_MODES)}, got {cfg.sdf_mode!r}")
     if cfg.traj_reduction not in ("mean", "sum"):
         raise ValueError(f"loss.traj_reduction must be 'mean' or 'sum', got {cfg.traj_reduction!r}")
-    bad = [k for k in ("traj", "wp", "occ", "sdf", "sdf_threshold") if getattr(cfg, k) < 0]
+    bad = [k for k in ("traj", "wp", "occ", "sdf", "sdf_threshold", "executed_weight", "executed_moves")
+           if getattr(cfg, k) < 0]
     if bad:
         raise ValueError(f"loss.{bad[0]} must be >= 0, got {getattr(cfg, bad[0])}")
 
@@ -134,6 +139,11 @@ def pretraining_loss(model: RokenDiT, sched: NoiseSchedule, batch: dict, loss_cf
 
     terms: dict[str, torch.Tensor] = {}
     sq = (out["eps"] - eps) ** 2  # (BK, R, H, 2)
+    if loss_cfg.executed_weight != 1.0:
+        H = sq.shape[2]
+        w = torch.ones(H, device=sq.device)
+        w[:loss_cfg.executed_moves] = loss_cfg.executed_weight
+        sq = sq * (w * H / w.sum())[None, None, :, None]
     terms["traj"] = _masked_mean(sq.mean(dim=(2, 3)) if loss_cfg.traj_reduction == "mean" else sq.sum(dim=(2, 3)), gen)
     real1 = batch["robot_mask"].float()
     if loss_cfg.wp > 0:

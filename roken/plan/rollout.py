@@ -48,6 +48,7 @@ class PlanConfig:
     dtype: str = "fp32"  # fp32 | bf16 (autocast)
     batch_size: int = 64  # episodes stepped together
     seed: int = 0
+    noise: str = "fresh"  # fresh: new noise at every re-plan | episode: one noise draw per episode, reused at each
     record_plans: bool = True  # store each re-plan's chunk with the episode (for the GIF)
 
 
@@ -65,6 +66,8 @@ def check(pc: PlanConfig, planner: RokenPlanner | None = None, team_size: int | 
     """Flags checked before anything runs, naming the flag."""
     if pc.replan_every < 1:
         raise ValueError(f"--replan-every {pc.replan_every}: must be >= 1")
+    if pc.noise not in ("fresh", "episode"):
+        raise ValueError(f"plan.noise={pc.noise!r}: choose fresh or episode")
     if pc.fallback not in ("hold", "fewest"):
         raise ValueError(f"plan.fallback={pc.fallback!r}: choose hold or fewest")
     if pc.select not in SELECTIONS:
@@ -120,7 +123,7 @@ class RokenRollout:
                 goal = s.task.goal if c.leader >= 0 else None
                 conds.append(build_condition(s.gm.occupancy, s.q[c.members], c.leader, goal, self.planner.cfg,
                                              given=planned[b][c.members], fixed=c.fixed, seen=s.seen, tokens=T))
-            out = self.planner.sample(conds, self.G, pc.sampler, pc.steps, [slots[b].gen for b in rows])
+            out = self.planner.sample(conds, self.G, pc.sampler, pc.steps, [slots[b].generator(stage) for b in rows])
             for j, b in enumerate(rows):
                 s, c = slots[b], cl[b][stage]
                 m = len(c.members)
@@ -190,7 +193,8 @@ class _Slot:
         self.hist = [self.q.astype(np.float32)]
         self.limit = ro.limits.step_limit(task, gm)
         seed = np.random.SeedSequence([ro.pc.seed, int(task.seed), len(self.q)]).generate_state(2)
-        self.gen = torch.Generator().manual_seed(int(seed[0]) << 32 | int(seed[1]))
+        self.seed = int(seed[0]) << 32 | int(seed[1])
+        self.gen = torch.Generator().manual_seed(self.seed)
         self.seen = None
         self.plans: list[np.ndarray] = []
         self.plan_steps: list[int] = []
@@ -200,6 +204,13 @@ class _Slot:
         self.geodesic = None
         if ro.pc.select == "geodesic" and not ro.pc.sensing_range:
             self.geodesic = geodesic_field(gm.occupancy, task.goal, gm.free_graph)
+
+    def generator(self, stage: int) -> torch.Generator:
+        """The noise of this re-plan: the episode's running stream, or (plan.noise=episode) the same draw at every
+        re-plan, so that consecutive plans start from one noise and stay consistent (no dithering between them)."""
+        if self.ro.pc.noise == "episode":
+            return torch.Generator().manual_seed(self.seed + stage)
+        return self.gen
 
     @property
     def finished(self) -> bool:
