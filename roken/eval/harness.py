@@ -38,7 +38,8 @@ from ..world.tasks import TaskConfig, TaskError, sample_task
 from ..plan.rollout import PlanConfig
 from .metrics import format_table, summarize
 
-PLANNERS = ("laplacian", "roken", "roken+safe", "roken+geodesic")
+PLANNERS = ("laplacian", "roken", "roken+safe", "roken+geodesic", "roken+guided", "roken+guided+safe",
+            "roken+guided+geodesic")
 
 
 @dataclass
@@ -81,8 +82,9 @@ def load_maps(cfg) -> tuple[list[GridMap], list[dict]]:
 def planner_names(ec: EvalConfig, pc: PlanConfig | None = None) -> list[str]:
     """The rows of an evaluation: `roken` with plan.select set is named for its selection (roken+safe)."""
     names = [p.strip() for p in str(ec.planner).split(",") if p.strip()]
-    if pc is not None and pc.select != "none":
-        names = [f"roken+{pc.select}" if p == "roken" else p for p in names]
+    if pc is not None and (pc.select != "none" or pc.guide):
+        tail = ("+guided" if pc.guide else "") + (f"+{pc.select}" if pc.select != "none" else "")
+        names = [f"roken{tail}" if p == "roken" else p for p in names]
     return list(dict.fromkeys(names))
 
 
@@ -159,8 +161,10 @@ def rollout_config(pc: PlanConfig, planner: str) -> PlanConfig:
     """The plan section for one row: plain `roken` uses one candidate, `roken+X` selects with X."""
     from dataclasses import replace
 
-    select = planner.partition("+")[2] or "none"
-    return replace(pc, select=select, candidates=pc.candidates if select != "none" else 1)
+    parts = planner.split("+")[1:]
+    guide = "guided" in parts
+    select = next((p for p in parts if p != "guided"), "none")
+    return replace(pc, select=select, guide=guide, candidates=pc.candidates if select != "none" else 1)
 
 
 def episode_file(out: str, planner: str, n: int) -> str:

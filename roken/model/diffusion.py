@@ -165,8 +165,9 @@ def ddim_steps(K: int, steps: int) -> list[int]:
 
 @torch.no_grad()
 def ddim_sample(model: RokenDiT, sched: NoiseSchedule, prompt: Prompt, steps: int = 10, eta: float = 0.0,
-                generator: torch.Generator | None = None, noise=None) -> Rollout:
-    """DDIM (Song et al.) over `steps` evenly spaced diffusion steps; eta = 0 is deterministic."""
+                generator: torch.Generator | None = None, noise=None, guide=None, guide_steps: int = 0) -> Rollout:
+    """DDIM (Song et al.) over `steps` evenly spaced diffusion steps; eta = 0 is deterministic. `guide(x0, given,
+    fixed)` (roken.plan.guidance) moves the predicted clean chunk at the last `guide_steps` steps."""
     x = _randn(prompt.given.shape, generator, prompt.given.device, noise)
     seq = ddim_steps(sched.K, steps)
     for i, k in enumerate(seq):
@@ -174,6 +175,8 @@ def ddim_sample(model: RokenDiT, sched: NoiseSchedule, prompt: Prompt, steps: in
         a = sched.abar[k]
         a_prev = sched.abar[seq[i + 1]] if i + 1 < len(seq) else torch.ones((), device=x.device)
         x0 = sched.predict_x0(x, ks, eps)
+        if guide is not None and i >= len(seq) - guide_steps:
+            x0 = guide(x0, prompt.given, prompt.fixed)
         eps = (x - a.sqrt() * x0) / (1 - a).sqrt()  # consistent with the clipped x0
         sigma = eta * ((1 - a_prev) / (1 - a) * (1 - a / a_prev)).clamp(min=0).sqrt()
         x = a_prev.sqrt() * x0 + (1 - a_prev - sigma ** 2).clamp(min=0).sqrt() * eps

@@ -97,7 +97,7 @@ class RokenPlanner:
     # ------------------------------------------------------------------ batched core
     @torch.no_grad()
     def sample(self, conds: list[dict], candidates: int = 1, sampler: str = "ddim", steps: int = 10,
-               generators: list[torch.Generator] | None = None) -> np.ndarray:
+               generators: list[torch.Generator] | None = None, guide=None, guide_steps: int = 0) -> np.ndarray:
         """conds: build_condition outputs with the same token count T; returns (B, G, T, H, 2) planned
         positions in metres (given robots exactly as given). generators: one per prompt (its candidates' noise
         comes from it alone, so a prompt's plan does not depend on the other prompts in the batch)."""
@@ -112,7 +112,8 @@ class RokenPlanner:
         with self.amp:
             prompt = make_prompt(self.model, {k: batch[k] for k in COND_KEYS + ("map",)}, batch["chunk"], G)
             if sampler == "ddim":
-                chunk = ddim_sample(self.model, self.schedule, prompt, steps=steps, noise=noise).chunk
+                chunk = ddim_sample(self.model, self.schedule, prompt, steps=steps, noise=noise, guide=guide,
+                                    guide_steps=guide_steps).chunk
             else:
                 chunk = ddpm_sample(self.model, self.schedule, prompt, noise=noise).chunk
         chunk = chunk.float().cpu().numpy().reshape((len(conds), G) + chunk.shape[1:])

@@ -26,6 +26,7 @@ from ..world.geometry import pad_for_clearance
 from ..world.grid import GridMap
 from ..world.tasks import Task, TaskConfig
 from .clusters import Cluster, overlapping_clusters
+from .guidance import Guide, known_fields
 from .planner import SAMPLERS, RokenPlanner
 from .select import SELECTIONS, choose, geodesic_field, progress, violations
 
@@ -49,6 +50,18 @@ class PlanConfig:
     batch_size: int = 64  # episodes stepped together
     seed: int = 0
     noise: str = "fresh"  # fresh: new noise at every re-plan | episode: one noise draw per episode, reused at each
+    # constraint-guided sampling (roken+guided rows; roken/plan/guidance.py): the cost's weights and its descent
+    guide: bool = False  # set by the row name roken+guided[+safe]
+    guide_scale: float = 1.0  # multiplies the descent step
+    guide_steps: int = 10  # the last DDIM steps that are guided (10 = every step of DDIM-10)
+    guide_iters: int = 50  # descent iterations per guided step
+    guide_lr: float = 0.1  # metres per unit of cost gradient (times guide_scale), <= 0.25 m per point and step
+    guide_margin: float = 0.6  # metres added to d_obs_min and d_coll_min, taken off the radius
+    guide_obstacle: float = 1.0
+    guide_inter: float = 1.0
+    guide_connect: float = 1.0
+    guide_goal: float = 0.5  # the leader's free-space distance to the goal, mean over the chunk's points
+    guide_exec_weight: float = 4.0  # weight of the executed moves (h < replan_every) in the constraint terms
     record_plans: bool = True  # store each re-plan's chunk with the episode (for the GIF)
 
 
@@ -66,6 +79,9 @@ def check(pc: PlanConfig, planner: RokenPlanner | None = None, team_size: int | 
     """Flags checked before anything runs, naming the flag."""
     if pc.replan_every < 1:
         raise ValueError(f"--replan-every {pc.replan_every}: must be >= 1")
+    if pc.guide and (pc.sampler != "ddim" or pc.guide_steps < 1 or pc.guide_iters < 1 or pc.guide_scale < 0):
+        raise ValueError(f"guided sampling needs --sampler ddim and --guide-steps, plan.guide_iters >= 1, "
+                         f"--guide-scale >= 0 (got {pc.sampler}, {pc.guide_steps}, {pc.guide_iters}, {pc.guide_scale})")
     if pc.noise not in ("fresh", "episode"):
         raise ValueError(f"plan.noise={pc.noise!r}: choose fresh or episode")
     if pc.fallback not in ("hold", "fewest"):
@@ -123,7 +139,9 @@ class RokenRollout:
                 goal = s.task.goal if c.leader >= 0 else None
                 conds.append(build_condition(s.gm.occupancy, s.q[c.members], c.leader, goal, self.planner.cfg,
                                              given=planned[b][c.members], fixed=c.fixed, seen=s.seen, tokens=T))
-            out = self.planner.sample(conds, self.G, pc.sampler, pc.steps, [slots[b].generator(stage) for b in rows])
+            guide = self.guide([slots[b] for b in rows], conds) if pc.guide else None
+            out = self.planner.sample(conds, self.G, pc.sampler, pc.steps, [slots[b].generator(stage) for b in rows],
+                                      guide, pc.guide_steps)
             for j, b in enumerate(rows):
                 s, c = slots[b], cl[b][stage]
                 m = len(c.members)
@@ -147,6 +165,15 @@ class RokenRollout:
                 planned[b][gen] = cand[g][~c.fixed]
                 done[b][gen] = True
         return planned
+
+    def guide(self, slots: list["_Slot"], conds: list[dict]) -> Guide:
+        """The guidance of one batched model call: each prompt's known-map fields, starts and masks."""
+        real = np.stack([c["robot_mask"] > 0 for c in conds])
+        leader = np.array([int(np.argmax(c["goal_mask"])) if c["goal_mask"].any() else -1 for c in conds])
+        return Guide(self.pc, self.tc, self.planner.cfg, np.stack([c["start"] for c in conds]), real,
+                     real & ~(np.stack([c["traj_mask"] for c in conds]) > 0), leader,
+                     np.stack([s.fields[0] for s in slots]), np.stack([s.fields[1] for s in slots]), self.G,
+                     self.planner.device)
 
     def run(self, tasks: list[Task], maps: dict[str, GridMap]):
         """Yield (task index, positions (T+1, N, 2) float32, info) as episodes finish (not in task order)."""
@@ -204,6 +231,7 @@ class _Slot:
         self.geodesic = None
         if ro.pc.select == "geodesic" and not ro.pc.sensing_range:
             self.geodesic = geodesic_field(gm.occupancy, task.goal, gm.free_graph)
+        self.fields = known_fields(gm.occupancy, task.goal, gm.free_graph) if ro.pc.guide else None
 
     def generator(self, stage: int) -> torch.Generator:
         """The noise of this re-plan: the episode's running stream, or (plan.noise=episode) the same draw at every
@@ -223,6 +251,8 @@ class _Slot:
             return
         now = sensed_cells(self.q, self.gm.shape[0], pc.sensing_range)
         self.seen = now if self.seen is None or not pc.accumulate else self.seen | now
+        if pc.guide:  # the guidance sees the known map only
+            self.fields = known_fields(known_occupancy(self.gm.occupancy, self.seen), self.task.goal)
         if pc.select != "none":
             known = known_occupancy(self.gm.occupancy, self.seen)
             self.padded_known = pad_for_clearance(known)
