@@ -7,7 +7,9 @@
 
 Latency: one plan = the condition (roken.data.condition), map encoding and DDIM-10 for all robots, 1 or 32
 candidates in one batch, through RokenPlanner.sample (random weights: the cost does not depend on them);
-median over repeats after warm-up. Throughput: closed-loop episodes/s of the shipped model on the same
+median over repeats after warm-up; `guided` rows add constraint-guided sampling at its defaults
+(roken/plan/guidance.py: plan.guide_iters descent iterations at each of plan.guide_steps DDIM steps, the
+known-map fields computed once per episode and not timed). Throughput: closed-loop episodes/s of the shipped model on the same
 evaluation tasks with continuous batching (plan.batch_size episodes per model call) vs one episode at a time.
 """
 from __future__ import annotations
@@ -29,15 +31,25 @@ from roken.plan import PlanConfig, RokenPlanner, RokenRollout
 from roken.world.maps import MapConfig, generate_map
 
 
-def latency(planner: RokenPlanner, n: int, G: int, repeat: int, rng) -> float:
+def latency(planner: RokenPlanner, n: int, G: int, repeat: int, rng, guided: bool = False) -> float:
+    from roken.plan.guidance import Guide, known_fields
+
+    cfg = load_config(None, ["plan.guide=true"])
     occ = generate_map(MapConfig(), "eval", 0).occupancy
     free = np.argwhere(occ == 0)
+    goal = free[0][::-1] + 0.5
+    fields = known_fields(occ, goal) if guided else None
     times = []
     for r in range(repeat + 2):
         starts = free[rng.choice(len(free), size=n, replace=False)][:, ::-1] + 0.5
         t0 = time.perf_counter()
-        cond = build_condition(occ, starts, 0, free[0][::-1] + 0.5, planner.cfg, tokens=n)
-        planner.sample([cond], G, "ddim", 10)
+        cond = build_condition(occ, starts, 0, goal, planner.cfg, tokens=n)
+        guide = None
+        if guided:
+            real = cond["robot_mask"][None] > 0
+            guide = Guide(cfg.plan, cfg.task, planner.cfg, cond["start"][None], real, real, np.array([0]),
+                          fields[0][None], fields[1][None], G, planner.device)
+        planner.sample([cond], G, "ddim", 10, guide=guide, guide_steps=cfg.plan.guide_steps)
         if planner.device.type == "cuda":
             torch.cuda.synchronize()
         if r >= 2:
@@ -75,14 +87,14 @@ def main(argv=None):
     print(f"device {a.device}, dtype {a.dtype}, torch threads {torch.get_num_threads()}")
     rng = np.random.default_rng(0)
     if not a.rollout_only:
-        print(f"{'preset':<8}{'robots':>7}{'candidates':>11}{'ms / plan (DDIM-10)':>22}")
+        print(f"{'preset':<8}{'robots':>7}{'candidates':>11}{'guided':>8}{'ms / plan (DDIM-10)':>22}")
         for name in a.presets.split(","):
             model = RokenDiT(preset(name)).to(a.device)
             planner = RokenPlanner(model, NoiseSchedule(DiffusionConfig(), a.device), SampleConfig(), a.device, a.dtype)
-            for n in (4, 10):
-                for G in (1, 32):
-                    ms = latency(planner, n, G, a.repeat, rng) * 1e3
-                    print(f"{name:<8}{n:>7}{G:>11}{ms:>22.1f}")
+            for n, G, guided in ((4, 1, False), (4, 32, False), (10, 1, False), (10, 32, False), (4, 1, True),
+                                 (4, 8, True)):
+                ms = latency(planner, n, G, a.repeat, rng, guided) * 1e3
+                print(f"{name:<8}{n:>7}{G:>11}{'yes' if guided else 'no':>8}{ms:>22.1f}")
     print(f"closed loop, {a.checkpoint}, 4 robots, DDIM-10, replan every 2:")
     one = throughput(a.checkpoint, a.episodes, 1, a.device)
     many = throughput(a.checkpoint, a.episodes, 64, a.device)

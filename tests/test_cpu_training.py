@@ -126,28 +126,24 @@ def test_closed_loop_validation_writes_its_keys_and_picks_best(expert_dataset, t
             "closed_loop/inter_collision", "closed_loop/connectivity", "val/first_move_cos_leader",
             "val/first_move_cos_follower", "val/l2_executed_m")
     assert all(k in summary["validation"] for k in keys)
-    # "best" ranks by closed-loop success, then reach; it survives pruning
-    for step, succ, reach in ((2, 0.5, 0.9), (4, 0.5, 0.2)):
-        d = next(p for p in ckpt.list_checkpoints(tmp_path) if ckpt.read_config(p)["step"] == step) \
-            if step == 4 else None
-        if d is not None:
-            cfg = json.loads((d / "config.json").read_text())
-            cfg["validation"] |= {"closed_loop/success": succ, "closed_loop/reach": reach}
-            (d / "config.json").write_text(json.dumps(cfg))
-    ck = ckpt.list_checkpoints(tmp_path)
-    assert ck, "checkpoints kept"
-    fake = tmp_path / "checkpoint-0000001"
+    # "best" ranks by closed-loop success, then reach, and survives pruning
     import shutil
-    shutil.copytree(ck[-1], fake)
-    cfg = json.loads((fake / "config.json").read_text())
-    cfg["step"], cfg["validation"] = 1, {"closed_loop/success": 0.9, "closed_loop/reach": 0.1}
-    (fake / "config.json").write_text(json.dumps(cfg))
-    assert ckpt.find(tmp_path, "best") == fake
-    cfg["validation"] = {"closed_loop/success": 0.5, "closed_loop/reach": 0.95}
-    (fake / "config.json").write_text(json.dumps(cfg))
-    assert ckpt.find(tmp_path, "best") == fake  # a tie on success is broken by reach
-    ckpt.prune(tmp_path, 1)
-    assert fake.is_dir()
+
+    def set_validation(d, success, reach, step=None):
+        cfg = json.loads((d / "config.json").read_text())
+        cfg["validation"] = {"closed_loop/success": success, "closed_loop/reach": reach}
+        cfg["step"] = cfg["step"] if step is None else step
+        (d / "config.json").write_text(json.dumps(cfg))
+    newest = ckpt.list_checkpoints(tmp_path)[-1]
+    set_validation(newest, 0.25, 0.5)
+    other = tmp_path / "checkpoint-0000001"
+    shutil.copytree(newest, other)
+    for success, reach, best in ((0.5, 0.1, other), (0.25, 0.9, other), (0.25, 0.4, newest)):
+        set_validation(other, success, reach, step=1)
+        assert ckpt.find(tmp_path, "best") == best
+    set_validation(other, 0.5, 0.1, step=1)
+    ckpt.prune(tmp_path, 1)  # keeps the newest and the best
+    assert other.is_dir() and newest.is_dir()
 
 
 def test_ablation_writes_both_files_and_resume_skips_finished(expert_dataset, tmp_path):

@@ -1,7 +1,6 @@
 """What a new user hit in training, planning and post-training (issue 19): re-running finished runs, checkpoint and
 model-config errors up front, divergence, exporting into the source, evaluation data as training data, and the
 README's two set-up lines. Each feeds the input and checks the exit code, the message and what was written."""
-import json
 import shutil
 import subprocess
 import sys
