@@ -224,7 +224,10 @@ def eval_unit(ctx: dict, payload: dict, cache: dict) -> list[dict]:
     cfg, by_id = cache["cfg"], cache["maps"]
     n, tasks, planner = payload["n"], payload["tasks"], payload.get("planner", "laplacian")
     rows: list[dict | None] = [None] * len(tasks)
+    tick = ctx.get("on_episode")  # in-process runs report every finished episode (progress), Ray runs per unit
     for i, pos, extra in run_planner(cfg, planner, tasks, by_id, cache, ctx.get("model")):
+        if tick is not None:
+            tick()
         e, task = tasks[i]
         rows[i] = episode_record(f"{planner}-n{n:02d}-e{e:05d}-{task.map_id}", planner, task,
                                  by_id[task.map_id], pos, cfg.task, e) | extra
@@ -309,6 +312,13 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
     failures = []
     ctx = {"config": to_dict(cfg), "maps": [(m.map_id, m.occupancy, m.source) for m in maps], "model": blob}
     bar = Progress(sum(u.size for u in units), f"[{','.join(planners)}]")
+    ticked = [0]  # episodes reported by the unit now running in this process
+
+    def tick():
+        ticked[0] += 1
+        bar.update(1)
+    if runner.workers == 0:
+        ctx["on_episode"] = tick
     try:
         for r in runner.imap_unordered("roken.eval.harness:eval_unit", ctx, units):
             key = (r.unit.payload["planner"], r.unit.payload["n"])
@@ -316,7 +326,9 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
                 rows_by[key] += r.value
             else:
                 failures.append({"unit": r.unit.key, "planner": key[0], "team_size": key[1], "error": r.error})
-            bar.update(r.unit.size)
+            if r.unit.size > ticked[0]:
+                bar.update(r.unit.size - ticked[0])  # the rest of the unit (all of it on Ray)
+            ticked[0] = 0
     finally:
         runner.shutdown()
     failed = {(f["planner"], f["team_size"]) for f in failures}
