@@ -67,15 +67,15 @@ def main(argv=None) -> int:
         out = Path(args.out).resolve()
         if out.exists() and not out.is_dir():
             raise ValueError(f"--out {out}: is a file; the ablation writes a folder there")
-        todo = [u for u in units if ablation.finished(out, u.key, u.payload["overrides"]) is None]
+        config = args.config and os.path.abspath(args.config)
+        todo = [u for u in units if ablation.finished(out, u.key, u.payload["overrides"], config) is None]
         print(f"[ablate] {len(units)} variants, {len(units) - len(todo)} finished earlier; budget "
               f"{f'{args.minutes:g} min' if args.minutes else f'{args.steps} steps'} each, {args.episodes} "
               f"closed-loop val tasks", file=sys.stderr)
         rows = {}
         if todo:
             runner = make_runner(args)
-            ctx = {"out": str(out), "data": data, "val_data": val, "config": args.config and os.path.abspath(args.config),
-                   "threads": args.threads}
+            ctx = {"out": str(out), "data": data, "val_data": val, "config": config, "threads": args.threads}
             print(f"[ablate] running on {runner.describe()}", file=sys.stderr)
             failed = []
             for k, r in enumerate(runner.imap_unordered("roken.train.ablation:run_variant", ctx, todo), 1):
@@ -91,7 +91,7 @@ def main(argv=None) -> int:
                 print("[ablate] failed (re-run the same command to retry them):\n  " + "\n  ".join(failed),
                       file=sys.stderr)
         for u in units:
-            rows.setdefault(u.key, ablation.finished(out, u.key, u.payload["overrides"]))
+            rows.setdefault(u.key, ablation.finished(out, u.key, u.payload["overrides"], config))
         done = [rows[u.key] for u in units if rows.get(u.key)]
         budget = f"{args.minutes:g} training minutes" if args.minutes else f"{args.steps} steps"
         ablation.write_report(out, done, f"Budget: {budget} per variant; closed loop on {args.episodes} `val` "

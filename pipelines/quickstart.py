@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-SHIPPED = ROOT / "models" / "roken-small-mixed"
+SHIPPED = ROOT / "models" / "roken-cpu-four"  # the CPU recipe's 4-robot model (README "Training on a CPU")
 
 
 def stage(title: str, script: str, args: list[str], where: list[str]) -> float:
@@ -99,7 +99,7 @@ def main(argv=None) -> int:
                           where if a.workers == 0 else ["--local", "--workers", "1"])
     common = ["--robots", "4", "--episodes", str(a.episodes), "--maps", "eval", "--candidates", "8"]
     t["evaluate shipped"] = stage("3/4 the shipped model beside the expert (same tasks)", "evaluate.py",
-                                  ["--planner", "laplacian,roken,roken+safe", "--checkpoint", str(SHIPPED),
+                                  ["--planner", "laplacian,roken,roken+guided+safe", "--checkpoint", str(SHIPPED),
                                    "--out", str(out / "eval-shipped")] + common, where)
     t["evaluate brief"] = stage("4/4 the model just trained (same tasks)", "evaluate.py",
                                 ["--planner", "roken", "--checkpoint", str(out / "pretrain"),
@@ -107,7 +107,7 @@ def main(argv=None) -> int:
     shipped = json.loads((out / "eval-shipped" / "metrics.json").read_text())["planners"]
     brief = json.loads((out / "eval-brief" / "metrics.json").read_text())["planners"]["roken"]
     rows = [("expert (laplacian)", shipped["laplacian"]), ("roken: shipped", shipped["roken"]),
-            ("roken+safe: shipped", shipped["roken+safe"]), (f"roken: brief {a.steps} steps", brief)]
+            ("roken+guided+safe: shipped", shipped["roken+guided+safe"]), (f"roken: brief {a.steps} steps", brief)]
     bar_chart(rows, out / "rows.png")
     figs = []
     for tool, name in (("plot", "episode.png"), ("animate", "episode.gif")):

@@ -63,21 +63,26 @@ def budget_overrides(minutes: float | None, steps: int | None, episodes: int) ->
     return sets
 
 
-def fingerprint(overrides: list[str]) -> str:
-    return hashlib.sha256(json.dumps(overrides).encode()).hexdigest()[:16]
+def fingerprint(overrides: list[str], config_text: str = "") -> str:
+    """What a variant's result depends on: its overrides and the base config file's text."""
+    return hashlib.sha256(json.dumps([overrides, config_text]).encode()).hexdigest()[:16]
+
+
+def config_text(config: str | None) -> str:
+    return Path(config).read_text() if config else ""
 
 
 def result_path(out: str | Path, name: str) -> Path:
     return Path(out) / "variants" / name / "result.json"
 
 
-def finished(out: str | Path, name: str, overrides: list[str]) -> dict | None:
+def finished(out: str | Path, name: str, overrides: list[str], config: str | None = None) -> dict | None:
     p = result_path(out, name)
     try:
         r = json.loads(p.read_text())
     except (OSError, ValueError):
         return None
-    return r if r.get("fingerprint") == fingerprint(overrides) else None
+    return r if r.get("fingerprint") == fingerprint(overrides, config_text(config)) else None
 
 
 def curve(run_dir: str | Path) -> list[dict]:
@@ -99,7 +104,7 @@ def run_variant(ctx: dict, payload: dict, cache: dict) -> dict:
     from .loop import Pretraining, PretrainSpec
 
     name, overrides = payload["name"], payload["overrides"]
-    done = finished(ctx["out"], name, overrides)
+    done = finished(ctx["out"], name, overrides, ctx.get("config"))
     if done is not None:
         return done
     if ctx.get("threads"):
@@ -115,7 +120,8 @@ def run_variant(ctx: dict, payload: dict, cache: dict) -> dict:
     row |= {k: v.get(f"closed_loop/{k}") for k in RESULT_KEYS}
     row |= {"first_move_cos_follower": v.get("val/first_move_cos_follower"),
             "first_move_cos_leader": v.get("val/first_move_cos_leader"), "l2_executed_m": v.get("val/l2_executed_m"),
-            "episodes": v.get("closed_loop/episodes"), "curve": curve(run_dir), "fingerprint": fingerprint(overrides)}
+            "episodes": v.get("closed_loop/episodes"), "curve": curve(run_dir),
+            "fingerprint": fingerprint(overrides, config_text(ctx.get("config")))}
     atomic_write_json(row, result_path(ctx["out"], name))
     return row
 
@@ -141,21 +147,29 @@ def write_report(out: str | Path, rows: list[dict], header: str = "") -> None:
     tmp = out / ".ablation.md.tmp"
     tmp.write_text(md)
     tmp.replace(out / "ablation.md")
+    plot_curves([(r["name"], r.get("curve") or [], r.get("threads", 1)) for r in rows], out / "ablation.png")
+
+
+def plot_curves(lines: list[tuple[str, list[dict], int]], path: str | Path, keys=("success",)) -> None:
+    """Closed-loop figures (curve() points) vs CPU minutes of training (train_s x threads), one line per run and
+    key; written atomically."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for r in rows:
-        c = r.get("curve") or []
-        threads = r.get("threads", 1)
-        ax.plot([p["train_s"] * threads / 60 for p in c], [p["success"] for p in c], marker="o", label=r["name"])
+    path = Path(path)
+    fig, ax = plt.subplots(figsize=(6.4, 4))
+    for label, c, threads in lines:
+        for key in keys:
+            ax.plot([p["train_s"] * threads / 60 for p in c], [p[key] for p in c], marker="o",
+                    label=label if len(keys) == 1 else f"{label}: {key}")
     ax.set_xlabel("CPU minutes of training")
-    ax.set_ylabel("closed-loop full success (val tasks)")
+    ax.set_ylabel("closed loop on val tasks" if len(keys) > 1 else f"closed-loop {keys[0]} (val tasks)")
     ax.set_ylim(-0.02, 1.02)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(out / ".ablation.png.tmp.png", dpi=110)
+    tmp = path.with_name(f".{path.stem}.tmp.png")
+    fig.savefig(tmp, dpi=110)
     plt.close(fig)
-    (out / ".ablation.png.tmp.png").replace(out / "ablation.png")
+    tmp.replace(path)
