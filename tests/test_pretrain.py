@@ -219,8 +219,9 @@ def test_recipes_load_and_are_consistent(recipe):
     assert (cfg.samples.subteam_prob > 0) == (recipe == "four-masked.yaml")
 
 
-def test_the_shipped_model_loads_and_plans():
-    shipped = ROOT / "models" / "roken-small-mixed"
+@pytest.mark.parametrize("name", ["roken-small-mixed", "roken-cpu-four"])
+def test_the_shipped_model_loads_and_plans(name):
+    shipped = ROOT / "models" / name
     loaded = ckpt.load(shipped, task_max_step=0.5)
     assert (shipped / "MODEL_CARD.md").is_file() and (shipped / "model.safetensors").stat().st_size < 10e6
     from roken.model.diffusion import COND_KEYS, ddim_sample, make_prompt

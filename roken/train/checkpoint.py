@@ -112,13 +112,15 @@ def prune(run_dir: str | Path, keep: int) -> None:
             shutil.rmtree(p, ignore_errors=True)
 
 
-def best_key(validation: dict) -> tuple | None:
-    """What "best" ranks by, higher first: closed-loop success, ties broken by reach (roken/train/closed_loop.py);
-    a run without closed-loop validation falls back to the lowest held-out L_traj."""
+def best_key(validation: dict, step: int | None = None) -> tuple | None:
+    """What "best" ranks by, higher first: closed-loop success, ties broken by reach (roken/train/closed_loop.py),
+    then the checkpoint the validation was measured on (later checkpoints carry the last figures until the next
+    validation); a run without closed-loop validation falls back to the lowest held-out L_traj."""
     if validation.get("closed_loop/success") is not None:
-        return (1, float(validation["closed_loop/success"]), float(validation.get("closed_loop/reach") or 0.0))
+        fresh = float(step is not None and validation.get("closed_loop/step") == step)
+        return (1, float(validation["closed_loop/success"]), float(validation.get("closed_loop/reach") or 0.0), fresh)
     if validation.get("val/losses/traj") is not None:
-        return (0, -float(validation["val/losses/traj"]), 0.0)
+        return (0, -float(validation["val/losses/traj"]), 0.0, 0.0)
     return None
 
 
@@ -137,7 +139,8 @@ def find(path: str | Path, which: str = "latest") -> Path:
         return ckpts[-1]
     if which != "best":
         raise ValueError(f"which must be 'latest' or 'best', got {which!r}")
-    scored = [(key, i, c) for i, c in enumerate(ckpts) if (key := best_key(_read_config(c).get("validation", {})))]
+    scored = [(key, i, c) for i, c in enumerate(ckpts)
+              if (key := best_key((cfg := _read_config(c)).get("validation", {}), cfg.get("step")))]
     return max(scored)[2] if scored else ckpts[-1]
 
 

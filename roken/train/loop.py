@@ -319,7 +319,8 @@ class Pretraining:
                           f"{last_val['val/l2_executed_m']:.3f} m\n" + format_validation(last_val))
             if closed is not None and (self.step % t.closed_loop_every == 0 or last):
                 v0 = time.perf_counter()
-                cl = closed.evaluate(self.ema, self.noise, self.spec.samples, self.device)
+                cl = closed.evaluate(self.ema, self.noise, self.spec.samples, self.device) | {
+                    "closed_loop/step": float(self.step)}
                 last_val = {k: v for k, v in last_val.items() if not k.startswith("closed_loop/")} | cl
                 metrics |= cl
                 t_win += time.perf_counter() - v0
