@@ -137,9 +137,8 @@ def main(argv=None) -> int:
                                                     last.get("train_s", 0.0) >= budget):
             print(f"[pretrain] {out} is finished (step {step} of train.steps={cfg.train.steps}); raise --steps "
                   f"(or train.time_budget_s) to train on. Its summary:", file=sys.stderr)
-            print(summary_table(json.loads(done.read_text())))
+            print(summary_table(last))
             return 0
-        run = None
         if wants_ray(args):
             run_ray(args, cfg, out)
         else:

@@ -167,7 +167,6 @@ def _sdf_term(sched, batch, loss_cfg, sample_cfg, out, x0, xk, k, fixed, gen, K)
     part once per sample."""
     th = loss_cfg.sdf_threshold
     norm = th if loss_cfg.sdf_normalize else 1.0
-    sdf = batch["sdf"].repeat_interleave(K, 0) if K > 1 else batch["sdf"]
     start = batch["start"].repeat_interleave(K, 0) if K > 1 else batch["start"]
     real1 = batch["robot_mask"].float()
     wps = batch["start"][:, :, None, :] + out["waypoints"][::K] * sample_cfg.waypoint_scale  # (B, R, Kw, 2)
@@ -189,6 +188,8 @@ def _sdf_term(sched, batch, loss_cfg, sample_cfg, out, x0, xk, k, fixed, gen, K)
     w = sched.abar[k][:, None, None]
     if loss_cfg.sdf_mode == "low_noise":
         w = w * (k < loss_cfg.sdf_max_k).float()[:, None, None]
-    pen_traj = w * (F.relu(th - sdf_at(sdf, traj)) / norm) ** 2  # (BK, R, H)
+    # each sample's K draws read its one SDF (rows are sample-major): no K copies of the (S, S) field
+    d = sdf_at(batch["sdf"], traj.view(batch["sdf"].shape[0], -1, 2)).view(traj.shape[:-1])  # (BK, R, H)
+    pen_traj = w * (F.relu(th - d) / norm) ** 2  # (BK, R, H)
     traj_sum = loss_cfg.sdf_traj * (pen_traj.sum(-1) * gen).sum() / K  # mean over the draws
     return (traj_sum + wp_sum) / (gen.sum() / K * H + real1.sum() * Kw).clamp(min=1)
