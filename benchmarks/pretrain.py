@@ -83,7 +83,7 @@ def bench_draws(data: str, steps: int) -> None:
 
 def bench_loader(data: str, workers: int, batch: int, batches: int) -> float:
     cfg = load_config(None, [])
-    bank, _ = load_banks(data, cfg.samples.canvas)
+    bank, _, _ = load_banks(data, cfg.samples.canvas)
     for m in range(len(bank.map_ids)):  # steady state: every map's SDF is computed once per run and kept
         bank.sdf(m)
     loader = make_loader(SampleStream(bank, cfg.samples), 0, batches + 2, batch, 0, 1, workers)

@@ -25,7 +25,7 @@ from common import (ROOT, USER_ERRORS, add_common_args, explain_relative_out, fa
                     wants_ray)
 
 from roken.config import Config, load_config
-from roken.configtools import from_dict, to_dict
+from roken.configtools import to_dict
 from roken.data.build import changed_keys
 from roken.data.store import StoreError
 from roken.model.dit import PRESETS, preset
@@ -45,6 +45,8 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--out", required=True, help="run folder (checkpoints, metrics); an absolute path for Ray")
     ap.add_argument("--val-data", help="held-out dataset (generated with --maps val; a dataset of eval maps is "
                                        "refused); default: train.val_fraction of --data's maps")
+    ap.add_argument("--init", help="start a new run from this checkpoint's weights, EMA and optimizer state "
+                                   "(fine-tuning; its step is not taken: train.steps counts from 0)")
     ap.add_argument("--preset", choices=sorted(PRESETS), help="model size (sets the model section over --config)")
     ap.add_argument("--steps", type=int, help="optimizer steps (train.steps)")
     ap.add_argument("--batch-size", type=int, help="global batch (train.batch_size), split over the workers")
@@ -84,17 +86,6 @@ def check_resume(out: str, cfg) -> int:
     return int(old.get("step", 0))
 
 
-def train_loop_per_worker(config: dict) -> None:
-    """Ray Train's per-worker function: the same loop as in-process, with the Ray backend."""
-    sys.path.insert(0, config["root"])
-    from roken.config import Config
-    from roken.ray_train import RayTrainBackend
-
-    cfg = from_dict(Config, config["config"])
-    Pretraining(PretrainSpec.of(cfg), config["data"], config["out"], config["val_data"],
-                backend=RayTrainBackend(cfg.loss, config["out"])).fit()
-
-
 def run_ray(args, cfg, out: str) -> None:
     from roken import ray_pool, ray_train
 
@@ -103,8 +94,8 @@ def run_ray(args, cfg, out: str) -> None:
                                   if args.gpus_per_worker else 1)
     print(f"[pretrain] Ray Train: {workers} worker(s) x (CPU {args.cpus_per_worker}, GPU {args.gpus_per_worker}); "
           f"global batch {cfg.train.batch_size} = {cfg.train.batch_size // workers} per worker", file=sys.stderr)
-    ray_train.fit(train_loop_per_worker, {"config": to_dict(cfg), "data": args.data, "out": out,
-                                          "val_data": args.val_data, "root": str(ROOT)},
+    ray_train.fit(ray_train.pretrain_worker, {"config": to_dict(cfg), "data": args.data, "out": out,
+                                          "val_data": args.val_data, "init": args.init, "root": str(ROOT)},
                   out, workers, args.cpus_per_worker, args.gpus_per_worker, args.max_failures,
                   cfg.train.keep_checkpoints)
 
@@ -126,6 +117,8 @@ def main(argv=None) -> int:
         if os.path.exists(out) and not os.path.isdir(out):
             raise ValueError(f"--out {args.out}: is a file; the run folder must be a folder (a new or an existing run)")
         args.data, args.val_data = _absolute(args.data), _absolute(args.val_data)  # Ray workers have another cwd
+        if args.init:
+            args.init = str(ckpt.find(args.init))  # a missing or bad checkpoint fails before anything is written
         for d, role in ((args.data, "--data"), (args.val_data, "--val-data")):
             if d:
                 check_dataset(d, role)
@@ -142,7 +135,7 @@ def main(argv=None) -> int:
         if wants_ray(args):
             run_ray(args, cfg, out)
         else:
-            run = Pretraining(PretrainSpec.of(cfg), args.data, out, args.val_data)
+            run = Pretraining(PretrainSpec.of(cfg), args.data, out, args.val_data, init=args.init)
             run.fit()
         summary = json.loads((Path(out) / "summary.json").read_text())
     except USER_ERRORS as e:

@@ -4,6 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from .configtools import ConfigError, load, to_dict  # noqa: F401  (re-exported)
+from .dagger.relabel import DaggerConfig
 from .data.generation import DatasetConfig
 from .data.samples import SampleConfig
 from .eval.harness import EvalConfig
@@ -32,6 +33,7 @@ class Config:
     train: TrainConfig = field(default_factory=TrainConfig)  # pretraining (roken/train/loop.py)
     plan: PlanConfig = field(default_factory=PlanConfig)  # Roken as a planner in closed loop (roken/plan)
     rl: RLConfig = field(default_factory=RLConfig)  # GRPO post-training (roken/rl)
+    dagger: DaggerConfig = field(default_factory=DaggerConfig)  # DAgger rounds (roken/dagger)
 
 
 def load_config(path=None, overrides: list[str] | None = None) -> Config:

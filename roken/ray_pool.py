@@ -100,22 +100,33 @@ def _has_token() -> bool:
     return bool(os.environ.get("RAY_AUTH_TOKEN")) or os.path.isfile(path)
 
 
-@ray.remote(num_cpus=1, max_restarts=-1, max_task_retries=0)
+# Units run one at a time in the default group; `progress` has its own group (a thread), so the driver can ask
+# how far a long unit has got while it runs.
+@ray.remote(num_cpus=1, max_restarts=-1, max_task_retries=0, concurrency_groups={"progress": 1})
 class UnitWorker:
     def __init__(self, fn_ref: str):
         self.fn = resolve_function(fn_ref)
         self.ctx, self.ctx_id = None, None
         self.cache: dict = {}
+        self.ticks = 0  # items (episodes) this actor finished inside units, reported by the unit's function
 
     def name(self) -> str:
         return worker_name()
+
+    @ray.method(concurrency_group="progress")
+    def progress(self) -> int:
+        return self.ticks
+
+    def _tick(self) -> None:
+        self.ticks += 1
 
     def run(self, ctx_box: list, unit: Unit) -> UnitResult:
         # ctx_box = [ObjectRef]: boxed so Ray does not fetch it for every call; fetched once per actor (and
         # again after a restart), then kept with the worker's cache.
         if self.ctx_id != ctx_box[0].hex():
             self.ctx, self.ctx_id, self.cache = ray.get(ctx_box[0]), ctx_box[0].hex(), {}
-        return call_unit(self.fn, self.ctx, unit, self.cache)
+        ctx = self.ctx | {"on_episode": self._tick} if self.ctx.get("report_episodes") else self.ctx
+        return call_unit(self.fn, ctx, unit, self.cache)
 
 
 class RayRunner:
@@ -130,6 +141,7 @@ class RayRunner:
         self.names: list[str] = []
         self.startup_seconds = 0.0  # creating the actors until all answered
         self._started: tuple = ()
+        self.on_progress = None  # f(items finished in units still running, summed over actors), polled
 
     def describe(self) -> str:
         return f"Ray, {self.workers} actor(s): {', '.join(self.names)}"
@@ -171,7 +183,10 @@ class RayRunner:
                 unit, attempt = queue.popleft()
                 pending[self.actors[a].run.remote(self.ctx_box, unit)] = (unit, attempt, a)
                 load[a] += 1
-            ready, _ = ray.wait(list(pending), num_returns=1)
+            ready, _ = ray.wait(list(pending), num_returns=1, timeout=2.0 if self.on_progress else None)
+            if not ready:
+                self._poll_progress()
+                continue
             for ref in ready:
                 unit, attempt, a = pending.pop(ref)
                 load[a] -= 1
@@ -197,6 +212,14 @@ class RayRunner:
                     result = UnitResult(unit, error=f"{type(e).__name__}: {str(e).splitlines()[0][:200]}")
                 result.attempts = attempt
                 yield result
+
+    def _poll_progress(self) -> None:
+        """Ask every actor how many items it finished (a restarted actor counts from 0 again)."""
+        try:
+            counts = ray.get([a.progress.remote() for a in self.actors], timeout=10)
+        except Exception:  # noqa: BLE001  (an actor restarting: report next time)
+            return
+        self.on_progress(sum(counts))
 
     def shutdown(self) -> None:
         for a in self.actors:

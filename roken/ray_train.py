@@ -64,6 +64,22 @@ class RayTrainBackend:
             shutil.rmtree(tmp, ignore_errors=True)
 
 
+def pretrain_worker(config: dict) -> None:
+    """Ray Train's per-worker function: the in-process loop with the Ray backend. `config` holds the root
+    config as a dict, the data (one folder or several with `shares`), the run folder and an optional `init`."""
+    import sys
+
+    sys.path.insert(0, config["root"])
+    from .config import Config
+    from .configtools import from_dict
+    from .train.loop import Pretraining, PretrainSpec
+
+    cfg = from_dict(Config, config["config"])
+    Pretraining(PretrainSpec.of(cfg), config["data"], config["out"], config["val_data"],
+                backend=RayTrainBackend(cfg.loss, config["out"]), data_shares=config.get("shares"),
+                init=config.get("init")).fit()
+
+
 def _injected_failure(rank: int, step: int) -> None:
     """Fault injection for the recovery test: ROKEN_KILL_WORKER="RANK:STEP:MARKER" makes that worker SIGKILL
     itself at that step's report, once (the marker file records it), as an OOM kill or a lost node would."""

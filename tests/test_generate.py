@@ -78,6 +78,7 @@ def test_rerun_skips_finished_shards_and_refuses_another_config(reference, tmp_p
     assert shard_bytes(out) == shard_bytes(reference)  # nothing already written is lost
 
 
+@pytest.mark.slow
 def test_local_ray_cluster_gives_the_same_dataset(reference, tmp_path, ray_tmp):
     out = tmp_path / "ds"
     r = run(SMALL + ["--out", str(out), "--local", "--num-cpus", "2"], env={"RAY_TMPDIR": ray_tmp})
@@ -87,6 +88,7 @@ def test_local_ray_cluster_gives_the_same_dataset(reference, tmp_path, ray_tmp):
     read_run(out)
 
 
+@pytest.mark.slow
 def test_killed_run_resumes_without_loss_or_duplicates(reference, tmp_path, ray_tmp):
     out = tmp_path / "ds"
     env = {"RAY_TMPDIR": ray_tmp}

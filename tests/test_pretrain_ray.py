@@ -8,7 +8,11 @@ import sys
 from pathlib import Path
 
 
+import pytest
+
 from roken.train import checkpoint as ckpt
+
+pytestmark = pytest.mark.slow  # a real local Ray cluster
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["--preset", "tiny", "--batch-size", "8", "--set", "train.loader_workers=0", "--set", "train.log_every=1",

@@ -15,6 +15,8 @@ import pytest
 from conftest import free_ports, short_tmpdir
 from roken.data.store import read_run
 
+pytestmark = pytest.mark.slow  # a real local Ray cluster
+
 ROOT = Path(__file__).resolve().parents[1]
 PYBIN = str(Path(sys.executable).parent)
 
@@ -230,3 +232,16 @@ print(json.dumps({{"n": len(rows), "ref": len(ref["chunk"]), "same": same,
     got = json.loads(r.stdout.strip().splitlines()[-1])
     assert got["n"] == got["ref"] > 0 and got["same"], got
     assert "chunk" in got["keys"] and "map" in got["keys"] and got["dtype"] == "torch.bool"
+
+
+def test_evaluation_on_ray_reports_episodes_as_they_finish(head, tmp_path):
+    """Issue 19.13: a Roken unit on a Ray actor reports its finished episodes while it runs (the driver polls
+    the actor), not only when the whole unit returns."""
+    args = ["--planner", "roken", "--checkpoint", str(ROOT / "models" / "roken-small-mixed"), "--robots", "2",
+            "--episodes", "8", "--set", "eval.unit_episodes=8", "--set", "plan.batch_size=1", "--steps", "3",
+            "--out", str(tmp_path / "ev"), "--address", head["GCS"], "--workers", "1"]
+    r = pipeline("evaluate.py", args, {**head, "OMP_NUM_THREADS": "1"})
+    assert r.returncode == 0, r.stderr
+    counts = [int(m) for m in re.findall(r"\[roken\] (\d+)/8 ", r.stderr)]
+    assert counts[-1] == 8 and any(0 < c < 8 for c in counts), r.stderr[-2000:]
+    assert counts == sorted(counts)

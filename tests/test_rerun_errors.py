@@ -94,3 +94,71 @@ def test_quickstart_refuses_a_folder_it_did_not_make(tmp_path):
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "did not make" in r.stderr
     assert (tmp_path / "report.md").read_text() == "mine"
+
+
+def test_another_checkpoint_is_refused_in_an_evaluation_folder(tmp_path):
+    """Item 3: a second --checkpoint into the same --out names the fingerprints and writes nothing."""
+    ev = tmp_path / "ev"
+    base = ["--planner", "roken", "--robots", "2", "--episodes", "1", "--num-maps", "1", "--steps", "2",
+            "--workers", "0", "--out", str(ev)]
+    assert run("evaluate.py", *base, "--checkpoint", str(SHIPPED)).returncode == 0
+    before = (ev / "episodes" / "roken-n02.parquet").read_bytes()
+    r = run("evaluate.py", *base, "--checkpoint", str(ROOT / "models" / "roken-cpu-four"))
+    assert r.returncode == 2 and "checkpoint: sha256" in r.stderr and "--overwrite" in r.stderr, r.stderr[-2000:]
+    assert "Traceback" not in r.stderr and (ev / "episodes" / "roken-n02.parquet").read_bytes() == before
+
+
+def _interrupt(cmd: list[str], ready, timeout: float = 240) -> subprocess.CompletedProcess:
+    """Start `cmd`, send SIGINT (Ctrl-C) once `ready()` holds, return the finished process."""
+    import signal
+    import time
+
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.time()
+    while not ready() and p.poll() is None and time.time() - t0 < timeout:
+        time.sleep(0.2)
+    p.send_signal(signal.SIGINT)
+    out, err = p.communicate(timeout=120)
+    return subprocess.CompletedProcess(cmd, p.returncode, out, err)
+
+
+def test_ctrl_c_in_pretraining_says_where_it_stopped_and_how_to_resume(expert_dataset, tmp_path):
+    """Item 6: exit 130, the step, the kept checkpoint and the resume hint, no traceback."""
+    out = tmp_path / "run"
+    cmd = [sys.executable, str(ROOT / "pipelines" / "pretrain.py"), "--data", expert_dataset, "--out", str(out),
+           "--steps", "100000", *TINY, "--set", "train.checkpoint_every=2"]
+    r = _interrupt(cmd, lambda: any(out.glob("checkpoint-*/config.json")))
+    assert r.returncode == 130, r.stderr[-2000:]
+    assert "interrupted at step" in r.stderr and "checkpoint at step" in r.stderr
+    assert "re-run the same command to resume" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_posttraining_ctrl_c_and_a_finished_rerun_keep_the_summary(expert_dataset, tmp_path):
+    """Items 6 and 7 for posttrain.py: Ctrl-C exits 130 with the resume hint; re-running a finished run keeps
+    summary.json byte for byte and prints it."""
+    out = tmp_path / "grpo"
+    small = ["--set", "rl.group_size=2", "--set", "rl.prompts_per_iteration=2", "--set", "rl.train_transitions=2",
+             "--set", "rl.minibatch_prompts=2", "--set", "rl.checkpoint_every=1", "--set", "rl.min_future=32",
+             "--set", "plan.steps=2", "--workers", "0"]
+    cmd = [sys.executable, str(ROOT / "pipelines" / "posttrain.py"), "--checkpoint", str(SHIPPED), "--data",
+           expert_dataset, "--out", str(out), *small]
+    r = _interrupt(cmd + ["--iterations", "1000"], lambda: any(out.glob("checkpoint-*/config.json")))
+    assert r.returncode == 130 and "re-run the same command to resume" in r.stderr, r.stderr[-2000:]
+    assert "Traceback" not in r.stderr
+    done = subprocess.run(cmd + ["--iterations", "2"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    before = (out / "summary.json").read_bytes()
+    again = subprocess.run(cmd + ["--iterations", "2"], capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0 and "checkpoint:" in again.stdout, again.stderr[-2000:]
+    assert (out / "summary.json").read_bytes() == before
+
+
+def test_a_corrupt_shard_is_named_with_the_fix(expert_dataset, tmp_path):
+    """Item 11: the unreadable shard and that re-running generate.py repairs it; nothing written."""
+    ds = tmp_path / "ds"
+    shutil.copytree(expert_dataset, ds)
+    shard = sorted((ds / "episodes").glob("*.parquet"))[0]
+    shard.write_bytes(shard.read_bytes()[:300])
+    r = run("pretrain.py", "--data", str(ds), "--out", str(tmp_path / "run"), *TINY)
+    assert r.returncode == 2 and shard.name in r.stderr and "Re-run the pipelines/generate.py" in r.stderr
+    assert "Traceback" not in r.stderr and not (tmp_path / "run").exists()

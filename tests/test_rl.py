@@ -159,6 +159,7 @@ def test_overlapped_rollout_learns_on_groups_one_version_behind(tiny_ckpt, exper
     assert any(not torch.equal(a, b) for a, b in zip(_weights(out).values(), _weights(tiny_ckpt).values()))
 
 
+@pytest.mark.slow
 def test_two_rollout_actors_with_one_killed_lose_no_group(tiny_ckpt, expert_dataset, tmp_path, ray_tmp):
     """A rollout actor killed mid-iteration is replaced and its prompts re-queued: every group arrives exactly
     once, so the weights equal the in-process run's."""

@@ -22,11 +22,28 @@ def open_dataset(location: str, table: str = "episodes") -> pads.Dataset:
     if not files:
         raise FileNotFoundError(f"{fs.join(location, table)}: no .parquet shards; is {location} a dataset folder "
                                 f"(maps/, episodes/, manifest.json)?")
-    return pads.dataset(files, format="parquet", filesystem=filesystem)
+    try:
+        return pads.dataset(files, format="parquet", filesystem=filesystem)
+    except (pa.ArrowInvalid, OSError) as e:
+        raise CorruptShard(location, e) from None
 
 
 def read_table(location: str, table: str = "episodes", columns: list[str] | None = None,
                successful_only: bool = False) -> pa.Table:
     ds = open_dataset(location, table)
     flt = (pads.field("success") == True) if successful_only else None  # noqa: E712  (Arrow expression)
-    return ds.to_table(columns=columns, filter=flt)
+    try:
+        return ds.to_table(columns=columns, filter=flt)
+    except (pa.ArrowInvalid, OSError) as e:
+        raise CorruptShard(location, e) from None
+
+
+class CorruptShard(ValueError):
+    """A shard that cannot be read: which one, and that re-running generate.py on the folder repairs it."""
+
+    def __init__(self, location: str, e: Exception):
+        shard = next((w.strip("'\".,:") for w in str(e).split() if w.strip("'\".,:").endswith(".parquet")), None)
+        super().__init__(f"{location}: a shard cannot be read ({shard or str(e).splitlines()[0][:200]}: corrupt or cut "
+                         f"short). Re-run the pipelines/generate.py command that made {location} on the same --out: "
+                         f"it regenerates the unreadable shards and keeps the others")
+

@@ -312,13 +312,31 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
     failures = []
     ctx = {"config": to_dict(cfg), "maps": [(m.map_id, m.occupancy, m.source) for m in maps], "model": blob}
     bar = Progress(sum(u.size for u in units), f"[{','.join(planners)}]")
-    ticked = [0]  # episodes reported by the unit now running in this process
+    # Progress per finished episode: in-process through ctx["on_episode"], on Ray by polling the actors' counts
+    # (RayRunner.on_progress); what is shown never goes back and ends at the total when every unit is done.
+    seen = {"ticks": 0, "units": 0, "shown": 0, "base": 0, "last": 0}
 
-    def tick():
-        ticked[0] += 1
-        bar.update(1)
+    def show() -> None:
+        target = min(max(seen["ticks"], seen["units"]), bar.total)
+        if target > seen["shown"]:
+            bar.update(target - seen["shown"])
+            seen["shown"] = target
+
+    def tick() -> None:
+        seen["ticks"] += 1
+        show()
+
+    def polled(total: int) -> None:  # actors' counters; one that restarted counts from 0 again
+        if total < seen["last"]:
+            seen["base"] += seen["last"]
+        seen["last"] = total
+        seen["ticks"] = seen["base"] + total
+        show()
     if runner.workers == 0:
         ctx["on_episode"] = tick
+    else:
+        ctx["report_episodes"] = True
+        runner.on_progress = polled
     try:
         for r in runner.imap_unordered("roken.eval.harness:eval_unit", ctx, units):
             key = (r.unit.payload["planner"], r.unit.payload["n"])
@@ -326,9 +344,8 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
                 rows_by[key] += r.value
             else:
                 failures.append({"unit": r.unit.key, "planner": key[0], "team_size": key[1], "error": r.error})
-            if r.unit.size > ticked[0]:
-                bar.update(r.unit.size - ticked[0])  # the rest of the unit (all of it on Ray)
-            ticked[0] = 0
+            seen["units"] += r.unit.size
+            show()
     finally:
         runner.shutdown()
     failed = {(f["planner"], f["team_size"]) for f in failures}

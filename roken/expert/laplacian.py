@@ -27,7 +27,7 @@ from ..world.graph import (WeightParams, connected, edge_weights, fiedler, lambd
                            minimum_spanning_tree, tree_parents)
 from ..world.grid import GridMap
 from ..world.paths import GridGraph
-from ..world.tasks import Task, TaskConfig
+from ..world.tasks import Task, TaskConfig, TaskError, check_start
 from ..world.paths import path_length
 from .reference import leader_reference
 from .smoothing import smooth_episode
@@ -109,6 +109,12 @@ class LaplacianExpert:
         if any(t.num_robots != N for t in tasks):
             raise ValueError("LaplacianExpert.run takes tasks of one team size; group them first")
         cfg, tc = self.cfg, self.tc
+        for i, t in enumerate(tasks):  # a start the controller cannot leave cleanly is refused, with the reason
+            why = check_start(maps[t.map_id], np.asarray(t.starts, np.float64), tc)
+            if why:
+                raise TaskError(f"task {i} on map {t.map_id}: the expert cannot start there: {why} (a start must "
+                                f"keep d_obs_min={tc.d_obs_min:g} m clearance and d_coll_min={tc.d_coll_min:g} m "
+                                f"spacing, and be connected within R={tc.comm_radius:g} m)")
         S = min(cfg.batch_size, len(tasks))
         H, W = maps[tasks[0].map_id].shape
         sdf = np.zeros((S, H, W), np.float32)

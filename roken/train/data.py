@@ -27,10 +27,12 @@ EPISODE_COLUMNS = ["episode_id", "map_id", "num_robots", "leader", "num_steps", 
 class SampleStream(torch.utils.data.Dataset):
     """Global sample index -> training sample (see the module docstring)."""
 
-    def __init__(self, bank: EpisodeBank, cfg: SampleConfig, seed: int = 0):
+    def __init__(self, bank: EpisodeBank, cfg: SampleConfig, seed: int = 0, source_weights: np.ndarray | None = None):
         check(cfg)
         self.bank, self.cfg, self.seed = bank, cfg, seed
         weights = bank.episode_weights(cfg.team_size_weights)
+        if source_weights is not None:  # a mix of datasets (DAgger): each its share, team sizes as configured
+            weights = source_weights if weights is None else weights * source_weights
         self.cdf = None if weights is None else np.cumsum(weights)
         self._order = lru_cache(maxsize=2)(self._epoch_order)
 
@@ -90,12 +92,27 @@ def _held_out(map_ids: pa.Array, fraction: float, seed: int) -> np.ndarray:
     return h / 2 ** 32 < fraction
 
 
-def load_banks(data: str, canvas: int, val_data: str | None = None, val_fraction: float = 0.0,
-               seed: int = 0) -> tuple[EpisodeBank, EpisodeBank | None]:
-    """The training bank of `data` and the validation bank: `val_data` (e.g. an `eval`-split dataset), else the
-    episodes of a `val_fraction` of `data`'s maps (never trained on), else None. Successful episodes only."""
-    train_tab, maps = _read(data)
-    store = MapStore(maps, canvas)
+def load_banks(data: str | list[str], canvas: int, val_data: str | None = None, val_fraction: float = 0.0,
+               seed: int = 0, shares: list[float] | None = None
+               ) -> tuple[EpisodeBank, EpisodeBank | None, np.ndarray | None]:
+    """The training bank of `data` and the validation bank: `val_data` (a `val`-split dataset), else the
+    episodes of a `val_fraction` of `data`'s maps (never trained on), else None. Successful episodes only.
+
+    `data` may be several datasets (DAgger: the expert dataset and the relabelled rounds); `shares` then gives
+    each one's share of the training samples (default: in proportion to their episodes), returned as per-episode
+    sampling weights (None for one dataset)."""
+    locations = [data] if isinstance(data, str) else list(data)
+    if shares is not None and len(shares) != len(locations):
+        raise ValueError(f"{len(shares)} data shares for {len(locations)} datasets")
+    tables, map_tables, sizes = [], [], []
+    for loc in locations:
+        tab, maps = _read(loc)
+        tables.append(tab)
+        map_tables.append(maps)
+        sizes.append(tab.num_rows)
+    train_tab = pa.concat_tables(tables) if len(tables) > 1 else tables[0]
+    source = np.repeat(np.arange(len(locations)), sizes)
+    store = MapStore(_unique_maps(map_tables), canvas)
     val = None
     if val_data:
         val_tab, val_maps = _read(val_data)
@@ -103,11 +120,27 @@ def load_banks(data: str, canvas: int, val_data: str | None = None, val_fraction
     elif val_fraction > 0:
         held = _held_out(train_tab.column("map_id").combine_chunks(), val_fraction, seed)
         if held.all() or not held.any():
-            raise ValueError(f"{data}: train.val_fraction={val_fraction} holds out {int(held.sum())} of "
+            raise ValueError(f"{locations[0]}: train.val_fraction={val_fraction} holds out {int(held.sum())} of "
                              f"{len(held)} episodes' maps; use a dataset with more maps or pass --val-data")
         val = EpisodeBank.from_arrow(train_tab.filter(pa.array(held)), store)
-        train_tab = train_tab.filter(pa.array(~held))
-    return EpisodeBank.from_arrow(train_tab, store), val
+        train_tab, source = train_tab.filter(pa.array(~held)), source[~held]
+    weights = None
+    if len(locations) > 1:
+        counts = np.bincount(source, minlength=len(locations)).astype(np.float64)
+        share = np.asarray(shares if shares is not None else counts, dtype=np.float64)
+        if (share < 0).any() or share[counts > 0].sum() <= 0:
+            raise ValueError(f"data shares {list(share)} must be >= 0 with a positive total")
+        weights = share[source] / np.maximum(counts[source], 1)
+    return EpisodeBank.from_arrow(train_tab, store), val, weights
+
+
+def _unique_maps(tables: list[pa.Table]) -> pa.Table:
+    """The maps of several datasets, each map id once (DAgger's rounds re-use the expert dataset's maps)."""
+    if len(tables) == 1:
+        return tables[0]
+    both = pa.concat_tables([t.select(tables[0].column_names) for t in tables])
+    _, first = np.unique(np.asarray(both.column("map_id").to_pylist(), dtype=object), return_index=True)
+    return both.take(pa.array(np.sort(first)))
 
 
 def _read(location: str) -> tuple[pa.Table, pa.Table]:
@@ -146,8 +179,10 @@ def check_dataset(location: str, role: str = "--data") -> int:
     return n
 
 
-def fingerprint(location: str) -> dict:
+def fingerprint(location: str | list[str]) -> dict:
     """What identifies the training data in a checkpoint: the dataset's manifest fingerprint and size."""
+    if not isinstance(location, str):
+        return {"datasets": [fingerprint(loc) for loc in location]}
     try:
         m = json.loads(fs.read_bytes(fs.join(location, "manifest.json")))
     except (OSError, ValueError):

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..data.build import code_version
+from ..data.build import changed_keys, code_version
 from ..devices import pick_device
 from ..data.loader import to_device
 from ..data.store import atomic_write_json
@@ -139,8 +139,10 @@ class LocalBackend:
 
 
 class Pretraining:
-    def __init__(self, spec: PretrainSpec, data: str, out: str | Path, val_data: str | None = None,
-                 backend=None, log_stream=None):
+    def __init__(self, spec: PretrainSpec, data: str | list[str], out: str | Path, val_data: str | None = None,
+                 backend=None, log_stream=None, data_shares: list[float] | None = None, init: str | None = None):
+        """`data`: one dataset, or several mixed by `data_shares` (DAgger). `init`: a checkpoint a new run starts
+        from (weights, EMA and, where it has one, the optimizer state; its step and schedule are not taken)."""
         check(spec.train)
         check_loss(spec.loss)
         check_model(spec.model)
@@ -155,7 +157,9 @@ class Pretraining:
         self.main = self.rank == 0
         if self.device.type == "cpu":
             torch.set_flush_denormal(True)  # zero-initialised AdaLN drives Adam states into denormals: 4x slower
-        self.train_bank, self.val_bank = load_banks(data, spec.samples.canvas, val_data, t.val_fraction, t.seed)
+        self.train_bank, self.val_bank, self.source_weights = load_banks(
+            data, spec.samples.canvas, val_data, t.val_fraction, t.seed, data_shares)
+        self.init = init
         self.log_stream = log_stream
         self.amp = (t.precision == "bf16") or (t.precision == "auto" and self.device.type == "cuda")
 
@@ -177,11 +181,12 @@ class Pretraining:
         if t.compile:
             self.net = torch.compile(self.net)
         self.step = 0
+        self.ema_offset = 0  # steps the EMA had averaged before this run (a run started from `init`)
         self.train_seconds = 0.0  # optimizer time so far (validation excluded): the time budget's clock
 
     def state(self) -> dict:
         return {"model": self.model.state_dict(), "ema": self.ema.state_dict(), "optimizer": self.opt.state_dict(),
-                "scheduler": self.sched.state_dict(), "step": self.step, "train_seconds": self.train_seconds,
+                "scheduler": self.sched.state_dict(), "step": self.step, "ema_offset": self.ema_offset, "train_seconds": self.train_seconds,
                 "rng": {"torch": torch.get_rng_state(), "numpy": _np_state(), "python": _py_state(),
                         "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []}}
 
@@ -191,6 +196,7 @@ class Pretraining:
         self.opt.load_state_dict(s["optimizer"])
         self.sched.load_state_dict(s["scheduler"])
         self.step = int(s["step"])
+        self.ema_offset = int(s.get("ema_offset", 0))
         self.train_seconds = float(s.get("train_seconds", 0.0))
         torch.set_rng_state(s["rng"]["torch"])
         if s["rng"].get("cuda") and torch.cuda.is_available():
@@ -198,11 +204,29 @@ class Pretraining:
         _set_np_state(s["rng"]["numpy"])
         _set_py_state(s["rng"]["python"])
 
+    def _load_init(self, path: str) -> None:
+        """Start from another run's checkpoint (DAgger's rounds): its weights and EMA, and its optimizer moments
+        when it has a train_state.pt (a fresh Adam at full lr would shake a trained model)."""
+        loaded = ckpt.load(path, "cpu")
+        self.ema_offset = int(loaded.config.get("step", 0)) + int(loaded.config.get("ema_offset", 0))
+        if asdict(loaded.model_cfg) != asdict(self.spec.model):
+            raise ckpt.CheckpointError(f"{loaded.path}: its model section differs from this run's "
+                                       f"({', '.join(changed_keys(asdict(loaded.model_cfg), asdict(self.spec.model), 'model.')[:4])}); "
+                                       f"start from a checkpoint of the same model config")
+        if (loaded.path / ckpt.STATE).is_file():
+            s = ckpt.load_train_state(loaded.path)
+            self.model.load_state_dict(s["model"])
+            self.ema.load_state_dict(s["ema"])
+            self.opt.load_state_dict(s["optimizer"])
+        else:  # inference weights only (an exported model): the EMA weights start both copies
+            self.model.load_state_dict(loaded.model.state_dict())
+            self.ema.load_state_dict(loaded.model.state_dict())
+
     def config_dict(self, validation: dict | None = None) -> dict:
         return {"model": asdict(self.spec.model), "diffusion": asdict(self.spec.diffusion),
                 "samples": asdict(self.spec.samples), "loss": asdict(self.spec.loss), "train": asdict(self.spec.train),
                 "task": asdict(self.spec.task), "dataset": fingerprint(self.data), "code_version": code_version(),
-                "step": self.step, "world_size": self.world, "validation": validation or {},
+                "step": self.step, "ema_offset": self.ema_offset, "init": self.init, "world_size": self.world, "validation": validation or {},
                 "kind": "roken-pretraining"}
 
     # -- one optimizer step --------------------------------------------------------------------------------
@@ -231,7 +255,8 @@ class Pretraining:
 
     @torch.no_grad()
     def _ema_update(self) -> None:
-        d = min(self.spec.train.ema_decay, (1 + self.step) / (10 + self.step))
+        s = self.step + self.ema_offset  # a run started from a trained model keeps its EMA horizon
+        d = min(self.spec.train.ema_decay, (1 + s) / (10 + s))
         ema, cur = list(self.ema.parameters()), list(self.model.parameters())
         torch._foreach_lerp_(ema, cur, 1 - d)
 
@@ -242,12 +267,14 @@ class Pretraining:
         resume = self.backend.resume_from()
         if resume is not None:
             self.load_state(ckpt.load_train_state(resume))
+        elif self.init is not None:
+            self._load_init(self.init)
         done = self.out / "summary.json"
         if resume is not None and (self.step >= t.steps or self._out_of_time()) and done.is_file():
             return json.loads(done.read_text())  # a finished run: its summary, nothing rewritten
         log = RunLogger(self.out, self.main, self.step, self.log_stream)
         start = self.step
-        stream = SampleStream(self.train_bank, self.spec.samples, t.seed)
+        stream = SampleStream(self.train_bank, self.spec.samples, t.seed, self.source_weights)
         validator = None
         if self.main and self.val_bank is not None and t.eval_every > 0:
             validator = Validator(self.val_bank, self.spec.samples, self.spec.loss, self.noise, t.val_prompts,

@@ -1,0 +1,98 @@
+"""DAgger's relabelling: states the learner visited in closed loop, continued by the Laplacian expert.
+
+The learner drifts into states the expert never showed (the paper's own limitation: "the training data lacks
+sufficient examples of such scenarios"). From each rollout we take the last feasible state before its first
+violation (the state the model should have recovered from) and states every `state_every` steps before it
+(where it was heading), start the expert there with the rollout's goal, and keep the continuation as an
+episode of the dataset schema (`source` "dagger", `round` r). The expert only starts from a feasible state
+(clearance, spacing, connected): others are refused, with the reason, by `LaplacianExpert.run`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..data.store import episode_record
+from ..expert.laplacian import ExpertConfig, LaplacianExpert
+from ..world.geometry import clearance
+from ..world.graph import connected
+from ..world.grid import GridMap
+from ..world.tasks import Task, TaskConfig, check_start
+
+
+@dataclass
+class DaggerConfig:
+    rounds: int = 4  # rollout -> relabel -> train, each round from the previous round's model
+    episodes: int = 96  # closed-loop rollouts per round, on `train` maps (new tasks every round)
+    robots: int = 4
+    state_every: int = 40  # simulator steps between relabelled states along a rollout (10 plan moves)
+    max_states: int = 6  # per rollout: the last feasible state before its first violation, then the others
+    steps_per_round: int = 1000  # training steps per round on the mix
+    share: float = 0.5  # share of training samples drawn from the relabelled episodes of all rounds so far
+    seed: int = 0
+
+
+def check(dc: DaggerConfig) -> None:
+    for k in ("rounds", "episodes", "robots", "state_every", "max_states", "steps_per_round"):
+        if getattr(dc, k) < 1:
+            raise ValueError(f"dagger.{k} must be >= 1, got {getattr(dc, k)}")
+    if not 0 < dc.share < 1:
+        raise ValueError(f"dagger.share={dc.share}: the relabelled episodes' share of training samples must be in "
+                         f"(0, 1) (the expert dataset keeps the rest)")
+
+
+def feasible_steps(positions: np.ndarray, gm: GridMap, tc: TaskConfig) -> np.ndarray:
+    """(T+1,) whether each recorded state satisfies every constraint (clearance, spacing, connected)."""
+    p = np.asarray(positions, np.float64)
+    ok = (clearance(gm.padded, p) >= tc.d_obs_min).all(axis=1)
+    if p.shape[1] > 1:
+        d = np.linalg.norm(p[:, :, None] - p[:, None], axis=-1)
+        off = ~np.eye(p.shape[1], dtype=bool)
+        ok &= (d[:, off] >= tc.d_coll_min).all(axis=1) & connected(d, tc.comm_radius)
+    return ok
+
+
+def select_states(positions: np.ndarray, gm: GridMap, goal: np.ndarray, leader: int, tc: TaskConfig,
+                  every: int, max_states: int) -> list[int]:
+    """The steps of a rollout to relabel: the last feasible step before the first violation (if it failed),
+    then every `every` steps before it, the later first (nearer the failure), at most `max_states`; steps
+    after the leader reached its goal are not taken (nothing to learn there)."""
+    ok = feasible_steps(positions, gm, tc)
+    bad = np.flatnonzero(~ok)
+    first_bad = int(bad[0]) if len(bad) else len(ok)
+    reached = np.flatnonzero(np.linalg.norm(positions[:, leader] - goal, axis=-1) <= tc.eps_goal)
+    end = min(first_bad, int(reached[0]) if len(reached) else len(ok))
+    chosen = [first_bad - 1] if 1 <= first_bad <= end and first_bad < len(ok) else []
+    chosen += [t for t in range(every, end, every)[::-1] if t not in chosen]
+    return sorted(chosen[:max_states])
+
+
+def relabel(episodes: list[dict], maps: dict[str, GridMap], round_index: int, dc: DaggerConfig,
+            tc: TaskConfig, ec: ExpertConfig) -> tuple[list[dict], dict]:
+    """Expert continuations from the selected states of `episodes` (rows of a rollout's episodes table).
+    Returns the new rows (every one, successful or not: the trainer keeps the successful ones) and counts."""
+    tasks, ids = [], []
+    refused = 0
+    for ep in episodes:
+        gm = maps[ep["map_id"]]
+        P = np.asarray(ep["positions"], np.float64)
+        goal, leader = np.asarray(ep["goal"], np.float64), int(ep["leader"])
+        for t in select_states(P, gm, goal, leader, tc, dc.state_every, dc.max_states):
+            why = check_start(gm, P[t], tc)  # feasible_steps already holds; kept as the expert's own check
+            if why:
+                refused += 1
+                continue
+            tasks.append(Task(ep["map_id"], P[t].copy(), goal.copy(), leader, seed=int(ep.get("seed", 0))))
+            ids.append(f"dagger-r{round_index:02d}-{ep['episode_id']}-t{t:04d}")
+    rows: list[dict | None] = [None] * len(tasks)
+    if tasks:
+        expert = LaplacianExpert(ec, tc)
+        for i, e in expert.run(tasks, maps):
+            rows[i] = episode_record(ids[i], "laplacian", tasks[i], maps[tasks[i].map_id], e.positions, tc,
+                                     tasks[i].seed) | {"source": "dagger", "round": round_index}
+    done = [r for r in rows if r is not None]
+    stats = {"rollouts": len(episodes), "rollout_success": float(np.mean([bool(e["success"]) for e in episodes]))
+             if episodes else 0.0, "states": len(done), "refused": refused,
+             "expert_success": float(np.mean([r["success"] for r in done])) if done else 0.0}
+    return done, stats

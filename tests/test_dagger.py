@@ -1,0 +1,99 @@
+"""DAgger (issue 18.2): the expert starts from any feasible state and refuses others with the reason; the states
+picked from a rollout; a tiny model's round writes relabelled shards `roken validate` accepts, with `source`
+and `round`; a round interrupted after relabelling and resumed equals an uninterrupted one."""
+import copy
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from roken.config import load_config
+from roken.dagger import run_dagger, select_states
+from roken.dagger.relabel import feasible_steps
+from roken.expert.laplacian import ExpertConfig, LaplacianExpert
+from roken.train.loop import Pretraining, PretrainSpec
+from roken.units import InProcessRunner
+from roken.world.maps import MapConfig, generate_map
+from roken.world.tasks import Task, TaskConfig, TaskError, sample_task
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ["model.width=64", "model.depth=2", "model.heads=4", "model.mlp_hidden=128", "model.map_channels=16",
+        "model.map_blocks=1", "model.map_encoder=patch", "train.batch_size=4", "train.loader_workers=0",
+        "train.val_fraction=0.34", "train.val_prompts=2", "train.log_every=1", "train.warmup_steps=0",
+        "train.closed_loop_every=0", "train.closed_loop_tasks=2", "train.closed_loop_robots=2",
+        "dagger.rounds=1", "dagger.episodes=3", "dagger.robots=2", "dagger.steps_per_round=2",
+        "dagger.state_every=12", "dagger.max_states=3", "plan.steps=2"]
+
+
+def test_expert_refuses_an_infeasible_start_and_leaves_a_feasible_one_cleanly():
+    tc, gm = TaskConfig(), generate_map(MapConfig(), "train", 3)
+    task = sample_task(gm, 3, tc, np.random.default_rng(0))
+    expert = LaplacianExpert(ExpertConfig(), tc)
+    _, ep = next(expert.run([task], {gm.map_id: gm}))
+    mid = ep.positions[40].astype(np.float64)  # a state of a clean run, not a sampled start
+    assert feasible_steps(ep.positions, gm, tc).all()
+    _, cont = next(expert.run([Task(gm.map_id, mid, task.goal, task.leader)], {gm.map_id: gm}))
+    np.testing.assert_allclose(cont.positions[0], mid, atol=1e-5)
+    assert feasible_steps(cont.positions[:65], gm, tc).all()  # at least one chunk horizon (16 x 4 steps) clean
+    bad = mid.copy()
+    bad[1] = bad[0] + [1.0, 0.0]  # two robots 1 m apart (d_coll_min = 2)
+    with pytest.raises(TaskError, match="cannot start there: two robots start 1.00 m apart"):
+        next(expert.run([Task(gm.map_id, bad, task.goal, task.leader)], {gm.map_id: gm}))
+
+
+def test_states_are_the_last_feasible_one_and_those_before_it():
+    tc, gm = TaskConfig(), generate_map(MapConfig(), "train", 3)
+    task = sample_task(gm, 2, tc, np.random.default_rng(1))
+    T = 100
+    P = np.repeat(task.starts[None], T + 1, axis=0)
+    P[70:, 1] = P[70:, 0] + [0.5, 0.0]  # robots collide from step 70 on
+    steps = select_states(P, gm, task.goal, task.leader, tc, every=20, max_states=3)
+    assert steps == [40, 60, 69]
+    assert select_states(P[:60], gm, task.goal, task.leader, tc, every=20, max_states=5) == [20, 40]
+
+
+def _tiny_model(expert_dataset, out: Path) -> str:
+    cfg = load_config(None, TINY + ["train.steps=2"])
+    Pretraining(PretrainSpec.of(cfg), expert_dataset, out).fit()
+    return str(out)
+
+
+def _run(cfg, model, data, out, train=None):
+    def fit(c, datasets, shares, run_dir, val_data, init):
+        return Pretraining(PretrainSpec.of(c), datasets, run_dir, val_data, data_shares=shares, init=init).fit()
+    return run_dagger(cfg, model, data, out, InProcessRunner, train or fit, log=lambda m: None)
+
+
+def test_a_round_writes_valid_relabelled_shards_and_resumes_exactly(expert_dataset, tmp_path):
+    model = _tiny_model(expert_dataset, tmp_path / "pre")
+    cfg = load_config(None, TINY)
+    a = _run(cfg, model, expert_dataset, tmp_path / "a")
+    data = tmp_path / "a" / "round-00" / "data"
+    r = subprocess.run([sys.executable, "-m", "roken", "validate", str(data)], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0 and "manifest finished" in r.stdout, r.stderr
+    tab = pq.read_table(data / "episodes" / "relabel.parquet")
+    assert tab.num_rows == a["rounds"][0]["states"] > 0
+    assert set(tab.column("source").to_pylist()) == {"dagger"} and set(tab.column("round").to_pylist()) == {0}
+    assert a["rounds"][0]["shares"][0] == pytest.approx(1 - cfg.dagger.share)
+
+    def interrupt(*_):  # the round stops in its training stage, after rollouts and relabelling
+        raise KeyboardInterrupt
+    with pytest.raises(KeyboardInterrupt):
+        _run(copy.deepcopy(cfg), model, expert_dataset, tmp_path / "b", interrupt)
+    assert not (tmp_path / "b" / "round-00" / "summary.json").exists()
+    b = _run(copy.deepcopy(cfg), model, expert_dataset, tmp_path / "b")
+    assert (tmp_path / "b" / "round-00" / "data" / "episodes" / "relabel.parquet").read_bytes() == \
+        (data / "episodes" / "relabel.parquet").read_bytes()
+    wa = load_file(str(Path(a["checkpoint"]) / "model.safetensors"))  # (the header's metadata order may vary)
+    wb = load_file(str(Path(b["checkpoint"]) / "model.safetensors"))
+    assert wa.keys() == wb.keys() and all(torch.equal(wa[k], wb[k]) for k in wa)
+    again = _run(copy.deepcopy(cfg), model, expert_dataset, tmp_path / "b")  # finished: nothing re-run
+    assert again["rounds"] == b["rounds"]
+    with pytest.raises(ValueError, match="dagger.share"):
+        _run(load_config(None, TINY + ["dagger.share=0.25"]), model, expert_dataset, tmp_path / "b")
