@@ -94,7 +94,11 @@ def main(argv=None) -> int:
         check_dataset(args.data, "--data")
         if args.val_data:
             check_dataset(args.val_data, "--val-data")
-        wants_ray(args)  # bad --workers / --num-cpus fail here, before anything is written
+        if wants_ray(args):  # bad --workers / --num-cpus fail here, before anything is written
+            from roken import ray_pool
+
+            # the dashboard's state API is what Ray Train's placement-group cleaner polls (pretrain.py does this too)
+            ray_pool.connect(args.address, args.local, args.num_cpus, code_root=str(ROOT), dashboard=True)
         result = run_dagger(cfg, args.checkpoint, args.data, out, lambda: make_runner(args), trainer(args),
                             args.val_data, log=lambda m: print(m, file=sys.stderr))
     except USER_ERRORS as e:

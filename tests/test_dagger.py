@@ -16,6 +16,7 @@ from roken.config import load_config
 from roken.dagger import run_dagger, select_states
 from roken.dagger.relabel import feasible_steps
 from roken.expert.laplacian import ExpertConfig, LaplacianExpert
+from roken.train.data import load_banks
 from roken.train.loop import Pretraining, PretrainSpec
 from roken.units import InProcessRunner
 from roken.world.maps import MapConfig, generate_map
@@ -27,7 +28,7 @@ TINY = ["model.width=64", "model.depth=2", "model.heads=4", "model.mlp_hidden=12
         "train.val_fraction=0.34", "train.val_prompts=2", "train.log_every=1", "train.warmup_steps=0",
         "train.closed_loop_every=0", "train.closed_loop_tasks=2", "train.closed_loop_robots=2",
         "dagger.rounds=1", "dagger.episodes=3", "dagger.robots=2", "dagger.steps_per_round=2",
-        "dagger.state_every=12", "dagger.max_states=3", "plan.steps=2"]
+        "dagger.state_every=12", "dagger.max_states=3", "dagger.sample_steps=16", "plan.steps=2"]
 
 
 def test_expert_refuses_an_infeasible_start_and_leaves_a_feasible_one_cleanly():
@@ -81,6 +82,11 @@ def test_a_round_writes_valid_relabelled_shards_and_resumes_exactly(expert_datas
     assert tab.num_rows == a["rounds"][0]["states"] > 0
     assert set(tab.column("source").to_pylist()) == {"dagger"} and set(tab.column("round").to_pylist()) == {0}
     assert a["rounds"][0]["shares"][0] == pytest.approx(1 - cfg.dagger.share)
+    assert set(tab.column("sample_until").to_pylist()) == {16}
+    bank, _, weights = load_banks([expert_dataset, str(data)], 140, shares=[0.5, 0.5])
+    relabelled = np.array([e.startswith("dagger-") for e in bank.episode_ids])
+    assert (bank.sample_until[relabelled] == 16).all() and (bank.sample_until[~relabelled] == bank.num_steps[~relabelled]).all()
+    assert weights[relabelled].sum() == pytest.approx(weights[~relabelled].sum())  # the configured shares
 
     def interrupt(*_):  # the round stops in its training stage, after rollouts and relabelling
         raise KeyboardInterrupt

@@ -30,10 +30,13 @@ class DaggerConfig:
     max_states: int = 6  # per rollout: the last feasible state before its first violation, then the others
     steps_per_round: int = 1000  # training steps per round on the mix
     share: float = 0.5  # share of training samples drawn from the relabelled episodes of all rounds so far
+    sample_steps: int = 0  # training chunks of a relabelled episode start in its first this many steps (0 = anywhere)
     seed: int = 0
 
 
 def check(dc: DaggerConfig) -> None:
+    if dc.sample_steps < 0:
+        raise ValueError(f"dagger.sample_steps={dc.sample_steps}: must be >= 0 (0 = chunks start anywhere)")
     for k in ("rounds", "episodes", "robots", "state_every", "max_states", "steps_per_round"):
         if getattr(dc, k) < 1:
             raise ValueError(f"dagger.{k} must be >= 1, got {getattr(dc, k)}")
@@ -90,7 +93,8 @@ def relabel(episodes: list[dict], maps: dict[str, GridMap], round_index: int, dc
         expert = LaplacianExpert(ec, tc)
         for i, e in expert.run(tasks, maps):
             rows[i] = episode_record(ids[i], "laplacian", tasks[i], maps[tasks[i].map_id], e.positions, tc,
-                                     tasks[i].seed) | {"source": "dagger", "round": round_index}
+                                     tasks[i].seed) | {"source": "dagger", "round": round_index,
+                                                                   "sample_until": dc.sample_steps}
     done = [r for r in rows if r is not None]
     stats = {"rollouts": len(episodes), "rollout_success": float(np.mean([bool(e["success"]) for e in episodes]))
              if episodes else 0.0, "states": len(done), "refused": refused,

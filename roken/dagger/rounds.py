@@ -135,7 +135,7 @@ def run_dagger(cfg, checkpoint: str, data: str, out: str | Path, make_runner, tr
     dc: DaggerConfig = cfg.dagger
     check(dc)
     out = Path(out)
-    first = ckpt.find(checkpoint)  # a bad checkpoint fails here, before anything is written
+    first = ckpt.find(checkpoint).resolve()  # a bad checkpoint fails here, before anything is written (absolute: Ray workers run elsewhere)
     check_run(out, cfg, checkpoint, data, val_data)
     start = start_figures(cfg, first, out)
     summaries, model = [], str(first)
@@ -149,7 +149,8 @@ def run_dagger(cfg, checkpoint: str, data: str, out: str | Path, make_runner, tr
             model = s["checkpoint"]
             continue
         t0 = time.perf_counter()
-        log(f"[dagger] round {r}/{dc.rounds}: rolling out {Path(model).name} on {dc.episodes} train tasks")
+        log(f"[dagger] round {r}/{dc.rounds}: rolling out {Path(model).parent.name}/{Path(model).name} on "
+            f"{dc.episodes} train tasks")
         ro = rollout(cfg, dc, model, r, d / "rollouts", make_runner())
         stats = relabel_round(cfg, dc, r, d / "rollouts", d / "data")
         log(f"[dagger] round {r}: rollout success {ro['full_success']:.3f} (reach {ro['reach']:.3f}); relabelled "

@@ -156,6 +156,7 @@ class EpisodeBank:
         self.num_robots, self.num_steps, self.leader, self.goal = num_robots, num_steps, leader, goal
         self.maps, self.map_index, self.episode_ids = maps, maps.index(map_ids), episode_ids
         self.occupancy, self.map_ids, self.sdf = maps.occupancy, maps.map_ids, maps.sdf
+        self.sample_until: np.ndarray | None = None  # per episode: chunks start before this step (DAgger)
         expected = (num_steps.astype(np.int64) + 1) * num_robots * 2
         bad = np.flatnonzero(np.diff(offsets) != expected)
         if len(bad):
@@ -169,11 +170,15 @@ class EpisodeBank:
     def from_arrow(cls, episodes: pa.Table, maps: pa.Table | MapStore, canvas: int = 140) -> "EpisodeBank":
         maps = maps if isinstance(maps, MapStore) else MapStore(maps, canvas)
         pos = episodes.column("positions").combine_chunks()
-        return cls(pos.values.to_numpy(zero_copy_only=False), pos.offsets.to_numpy(),
+        bank = cls(pos.values.to_numpy(zero_copy_only=False), pos.offsets.to_numpy(),
                    episodes.column("num_robots").to_numpy(), episodes.column("num_steps").to_numpy(),
                    episodes.column("leader").to_numpy(),
                    np.asarray(episodes.column("goal").to_pylist(), dtype=np.float32).reshape(-1, 2),
                    episodes.column("map_id").to_pylist(), episodes.column("episode_id").to_pylist(), maps)
+        if "sample_until" in episodes.column_names:  # relabelled episodes: learn the moves near their start
+            until = episodes.column("sample_until").to_numpy(zero_copy_only=False)
+            bank.sample_until = np.where(until > 0, until, bank.num_steps).astype(np.int64)
+        return bank
 
     @classmethod
     def from_columns(cls, batch: dict[str, np.ndarray], maps: MapStore) -> "EpisodeBank":
@@ -286,7 +291,8 @@ def make_sample(bank: EpisodeBank, i: int, rng: np.random.Generator, cfg: Sample
     # sample a fixed-length multi-robot action chunk and a goal position along the future trajectory of the
     # leader"). Drawing the goal time first and the chunk before it made 67 % of goals lie within 32 m of the
     # start, while evaluation goals are >= 50 m away.
-    t = int(rng.integers(0, T))
+    # (an episode with sample_until, DAgger's, starts its chunks near the learner's state; the future is whole)
+    t = int(rng.integers(0, T if bank.sample_until is None else max(1, min(T, int(bank.sample_until[i])))))
     final = rng.random() < cfg.final_goal_prob
     t_g = T if final else int(rng.integers(t + 1, T + 1))
     goal = bank.goal[i].astype(np.float32) if final else P[t_g, leader].astype(np.float32)

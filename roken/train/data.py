@@ -145,7 +145,11 @@ def _unique_maps(tables: list[pa.Table]) -> pa.Table:
 
 def _read(location: str) -> tuple[pa.Table, pa.Table]:
     check_dataset(location)
-    episodes = shards.read_table(location, "episodes", columns=EPISODE_COLUMNS, successful_only=True)
+    names = shards.open_dataset(location, "episodes").schema.names
+    cols = EPISODE_COLUMNS + (["sample_until"] if "sample_until" in names else [])
+    episodes = shards.read_table(location, "episodes", columns=cols, successful_only=True)
+    if "sample_until" not in names:  # 0 = chunks start anywhere (expert episodes); lets datasets be mixed
+        episodes = episodes.append_column("sample_until", pa.array(np.zeros(episodes.num_rows, np.int32)))
     return episodes, shards.read_table(location, "maps")
 
 
