@@ -21,7 +21,7 @@ import os
 import sys
 from pathlib import Path
 
-from common import (ROOT, USER_ERRORS, add_common_args, explain_relative_out, fail, interrupted, make_runner,
+from common import (ROOT, USER_ERRORS, add_common_args, explain_relative_out, fail, make_runner,
                     named_overrides, wants_ray)
 
 from roken.config import load_config
@@ -104,7 +104,10 @@ def main(argv=None) -> int:
     except USER_ERRORS as e:
         return fail(e)
     except KeyboardInterrupt:
-        return interrupted("dagger", out, None)
+        done = sorted(p.parent.name for p in Path(out).glob("round-*/summary.json"))
+        print(f"[dagger] interrupted; {len(done)} finished round(s) in {out} ({', '.join(done) or 'none'}) and the "
+              f"finished stages of the next are kept; re-run the same command to resume", file=sys.stderr)
+        return 130
     print(summary_table(result))
     print(f"model: {result['checkpoint']}")
     return 0
