@@ -113,7 +113,10 @@ def _interrupt(cmd: list[str], ready, timeout: float = 240) -> subprocess.Comple
     import signal
     import time
 
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # A shell's background job inherits SIGINT ignored, and Python then installs no KeyboardInterrupt handler:
+    # the child gets the default disposition back, as a terminal's foreground job has it.
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     t0 = time.time()
     while not ready() and p.poll() is None and time.time() - t0 < timeout:
         time.sleep(0.2)
