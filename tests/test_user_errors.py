@@ -106,7 +106,9 @@ def test_ctrl_c_during_generate_records_the_state_and_resumes(tmp_path):
            "--set", "dataset.team_sizes={2: 1}", "--out", str(out)]
     # 16 one-map units run one after another in-process, so the SIGINT sent when the first file appears lands
     # long before the last unit is done, even on a loaded machine
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # default SIGINT disposition for the child: a background CI job inherits it ignored (no KeyboardInterrupt)
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.time() + 120
     while not list((out / "episodes").glob("unit-*.parquet")) and time.time() < deadline:
         time.sleep(0.1)
