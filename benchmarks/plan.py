@@ -91,8 +91,8 @@ def main(argv=None):
         for name in a.presets.split(","):
             model = RokenDiT(preset(name)).to(a.device)
             planner = RokenPlanner(model, NoiseSchedule(DiffusionConfig(), a.device), SampleConfig(), a.device, a.dtype)
-            for n, G, guided in ((4, 1, False), (4, 32, False), (10, 1, False), (10, 32, False), (4, 1, True),
-                                 (4, 8, True)):
+            for n, G, guided in ((4, 1, False), (4, 8, False), (4, 32, False), (10, 1, False), (10, 32, False),
+                                 (4, 1, True), (4, 8, True)):
                 ms = latency(planner, n, G, a.repeat, rng, guided) * 1e3
                 print(f"{name:<8}{n:>7}{G:>11}{'yes' if guided else 'no':>8}{ms:>22.1f}")
     print(f"closed loop, {a.checkpoint}, 4 robots, DDIM-10, replan every 2:")
