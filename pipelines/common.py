@@ -101,6 +101,24 @@ def make_runner(args, gpus_per_worker: float = 0):
     return ray_pool.RayRunner(workers)
 
 
+def local_run_folder(out: str, what: str, file_hint: str = "") -> str:
+    """--out of a training pipeline as an absolute local folder (Ray workers have another cwd), checked before
+    anything is written: not a URI, not a file."""
+    explain_relative_out(out)
+    if "://" in out:
+        raise ValueError(f"--out {out}: {what} writes its run folder on a file system; give a local or shared "
+                         f"(NFS) path")
+    path = os.path.abspath(out)
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise ValueError(f"--out {out}: is a file; the {file_hint or 'run folder'} must be a folder")
+    return path
+
+
+def absolute(location: str | None) -> str | None:
+    """A local path made absolute (Ray workers have another cwd); URIs and None as they are."""
+    return location if location is None or "://" in location else os.path.abspath(location)
+
+
 def explain_relative_out(out: str) -> None:
     if "://" not in out and not os.path.isabs(out) and in_ray_job():
         print(f"note: --out {out} is relative; inside a Ray job it is {os.path.abspath(out)}, the job's "

@@ -17,11 +17,10 @@ are the checkpoint's.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
-from common import (ROOT, USER_ERRORS, add_common_args, explain_relative_out, fail, make_runner,
+from common import (ROOT, USER_ERRORS, absolute, add_common_args, fail, local_run_folder, make_runner,
                     named_overrides, wants_ray)
 
 from roken.config import load_config
@@ -79,18 +78,10 @@ def main(argv=None) -> int:
     args = parser().parse_args(argv)
     out = args.out
     try:
-        explain_relative_out(args.out)
-        if "://" in args.out:
-            raise ValueError(f"--out {args.out}: DAgger writes its run folder on a file system; give a local or "
-                             f"shared (NFS) path")
-        out = os.path.abspath(args.out)
-        if os.path.exists(out) and not os.path.isdir(out):
-            raise ValueError(f"--out {args.out}: is a file; the DAgger run folder must be a folder")
+        out = local_run_folder(args.out, "DAgger", "DAgger run folder")
         sets = named_overrides(args, "dagger", ("rounds", "episodes", "steps_per_round", "share"))
         cfg = from_checkpoint(load_config(args.config, sets), args.checkpoint)
-        args.data = os.path.abspath(args.data) if "://" not in args.data else args.data
-        args.val_data = os.path.abspath(args.val_data) if args.val_data and "://" not in args.val_data \
-            else args.val_data
+        args.data, args.val_data = absolute(args.data), absolute(args.val_data)
         check_dataset(args.data, "--data")
         if args.val_data:
             check_dataset(args.val_data, "--val-data")

@@ -16,13 +16,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from dataclasses import asdict
 from pathlib import Path
 
-from common import (ROOT, USER_ERRORS, add_common_args, explain_relative_out, fail, interrupted, named_overrides,
-                    wants_ray)
+from common import (ROOT, USER_ERRORS, absolute, add_common_args, fail, interrupted, local_run_folder,
+                    named_overrides, wants_ray)
 
 from roken.config import Config, load_config
 from roken.configtools import to_dict
@@ -100,23 +99,13 @@ def run_ray(args, cfg, out: str) -> None:
                   cfg.train.keep_checkpoints)
 
 
-def _absolute(location: str | None) -> str | None:
-    return location if location is None or "://" in location else os.path.abspath(location)
-
-
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     out, run = args.out, None
     try:
         cfg = load_config(args.config, overrides(args))
-        explain_relative_out(args.out)
-        if "://" in args.out:
-            raise ValueError(f"--out {args.out}: pretraining writes its run folder on a file system; give a local "
-                             f"or shared (NFS) path")
-        out = os.path.abspath(args.out)
-        if os.path.exists(out) and not os.path.isdir(out):
-            raise ValueError(f"--out {args.out}: is a file; the run folder must be a folder (a new or an existing run)")
-        args.data, args.val_data = _absolute(args.data), _absolute(args.val_data)  # Ray workers have another cwd
+        out = local_run_folder(args.out, "pretraining", "run folder (a new or an existing run)")
+        args.data, args.val_data = absolute(args.data), absolute(args.val_data)
         if args.init:
             args.init = str(ckpt.find(args.init))  # a missing or bad checkpoint fails before anything is written
         for d, role in ((args.data, "--data"), (args.val_data, "--val-data")):

@@ -101,8 +101,8 @@ def mix(data: str, out: Path, r: int, share: float) -> tuple[list[str], list[flo
     """The expert dataset and every round's relabelled data so far, with their shares of the samples (the
     relabelled share split over the rounds in proportion to their successful episodes)."""
     rounds = [round_dir(out, k) / "data" for k in range(r + 1)]
-    kept = [read_json(d / "manifest.json")["stats"]["states"] * read_json(d / "manifest.json")["stats"]
-            ["expert_success"] for d in rounds]
+    stats = [read_json(d / "manifest.json")["stats"] for d in rounds]
+    kept = [st["states"] * st["expert_success"] for st in stats]
     total = sum(kept)
     if total <= 0:
         return [data], [1.0]
