@@ -7,9 +7,10 @@
 
 Latency: one plan = the condition (roken.data.condition), map encoding and DDIM-10 for all robots, 1 or 32
 candidates in one batch, through RokenPlanner.sample (random weights: the cost does not depend on them);
-median over repeats after warm-up; `guided` rows add constraint-guided sampling at its defaults
-(roken/plan/guidance.py: plan.guide_iters descent iterations at each of plan.guide_steps DDIM steps, the
-known-map fields computed once per episode and not timed). Throughput: closed-loop episodes/s of the shipped model on the same
+median over repeats after warm-up; `guided` rows add constraint-guided sampling (roken/plan/guidance.py) with
+the schedule shown: the guided DDIM steps (plan.guide_steps), the descent iterations at each of them but the
+last (plan.guide_iters) and at the last (plan.guide_final_iters); `default` = the config's defaults, `10x50` = the
+first implementation's schedule; the known-map fields are computed once per episode and not timed. Throughput: closed-loop episodes/s of the shipped model on the same
 evaluation tasks with continuous batching (plan.batch_size episodes per model call) vs one episode at a time.
 """
 from __future__ import annotations
@@ -31,10 +32,11 @@ from roken.plan import PlanConfig, RokenPlanner, RokenRollout
 from roken.world.maps import MapConfig, generate_map
 
 
-def latency(planner: RokenPlanner, n: int, G: int, repeat: int, rng, guided: bool = False) -> float:
+def latency(planner: RokenPlanner, n: int, G: int, repeat: int, rng, guided: bool = False,
+            schedule: list[str] = ()) -> float:
     from roken.plan.guidance import Guide, known_fields
 
-    cfg = load_config(None, ["plan.guide=true"])
+    cfg = load_config(None, ["plan.guide=true", *schedule])
     occ = generate_map(MapConfig(), "eval", 0).occupancy
     free = np.argwhere(occ == 0)
     goal = free[0][::-1] + 0.5
@@ -87,14 +89,15 @@ def main(argv=None):
     print(f"device {a.device}, dtype {a.dtype}, torch threads {torch.get_num_threads()}")
     rng = np.random.default_rng(0)
     if not a.rollout_only:
-        print(f"{'preset':<8}{'robots':>7}{'candidates':>11}{'guided':>8}{'ms / plan (DDIM-10)':>22}")
+        print(f"{'preset':<8}{'robots':>7}{'candidates':>11}{'guided':>10}{'ms / plan (DDIM-10)':>22}")
+        old = ["plan.guide_steps=10", "plan.guide_iters=50", "plan.guide_final_iters=0"]
         for name in a.presets.split(","):
             model = RokenDiT(preset(name)).to(a.device)
             planner = RokenPlanner(model, NoiseSchedule(DiffusionConfig(), a.device), SampleConfig(), a.device, a.dtype)
-            for n, G, guided in ((4, 1, False), (4, 8, False), (4, 32, False), (10, 1, False), (10, 32, False),
-                                 (4, 1, True), (4, 8, True)):
-                ms = latency(planner, n, G, a.repeat, rng, guided) * 1e3
-                print(f"{name:<8}{n:>7}{G:>11}{'yes' if guided else 'no':>8}{ms:>22.1f}")
+            for n, G, guided in ((4, 1, "no"), (4, 8, "no"), (4, 32, "no"), (10, 1, "no"), (10, 32, "no"),
+                                 (4, 1, "default"), (4, 8, "default"), (4, 1, "10x50"), (4, 8, "10x50")):
+                ms = latency(planner, n, G, a.repeat, rng, guided != "no", old if guided == "10x50" else []) * 1e3
+                print(f"{name:<8}{n:>7}{G:>11}{guided:>10}{ms:>22.1f}")
     print(f"closed loop, {a.checkpoint}, 4 robots, DDIM-10, replan every 2:")
     one = throughput(a.checkpoint, a.episodes, 1, a.device)
     many = throughput(a.checkpoint, a.episodes, 64, a.device)

@@ -176,7 +176,7 @@ def ddim_sample(model: RokenDiT, sched: NoiseSchedule, prompt: Prompt, steps: in
         a_prev = sched.abar[seq[i + 1]] if i + 1 < len(seq) else torch.ones((), device=x.device)
         x0 = sched.predict_x0(x, ks, eps)
         if guide is not None and i >= len(seq) - guide_steps:
-            x0 = guide(x0, prompt.given, prompt.fixed)
+            x0 = guide(x0, prompt.given, prompt.fixed, last=i == len(seq) - 1)
         eps = (x - a.sqrt() * x0) / (1 - a).sqrt()  # consistent with the clipped x0
         sigma = eta * ((1 - a_prev) / (1 - a) * (1 - a / a_prev)).clamp(min=0).sqrt()
         x = a_prev.sqrt() * x0 + (1 - a_prev - sigma ** 2).clamp(min=0).sqrt() * eps

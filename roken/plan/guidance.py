@@ -10,9 +10,17 @@ that uses only what a deployed planner has (its known map and its goal), then th
   goal       mean_h geo(p_leader,h)                                 free-space (octile) distance to the goal on
                                                                      the known map, so the pull goes around blocks
 w_h = guide_exec_weight for the executed moves (h < replan_every), 1 for the others. The descent runs on the
-positions in metres (`guide_iters` steps of `guide_lr`, each point's update clipped to 0.25 m), given robots
-(conditional mode, clustered rollout) never move, and the chunk is re-encoded with every move clipped to the
-chunk's full-speed scale. Everything is batched over the episodes and candidates of a re-plan.
+positions in metres (`guide_iters` steps of `guide_lr` at each guided DDIM step, `guide_final_iters` at the last
+one; each point's update clipped to 0.25 m), given robots (conditional mode, clustered rollout) never move, and
+the chunk is re-encoded with every move clipped to the chunk's full-speed scale. Everything is batched over the
+episodes and candidates of a re-plan.
+
+Speed: the arrays are tiny (B G rows of R x 16 points), so an iteration costs what its number of array calls
+costs. The descent therefore runs in numpy on the host with the cost's gradient in closed form (`Guide.grad`:
+the bilinear fields' exact gradients, the pair terms from the pair differences) instead of torch autograd
+through `Guide.cost`, which stays as the differentiable reference the tests check `grad` against; the spanning
+trees are re-grown every `MST_EVERY` iterations rather than every one (a tree changes only when the team's
+shape does). Figures: benchmarks/README.md.
 """
 from __future__ import annotations
 
@@ -21,32 +29,43 @@ import torch
 
 from ..data.samples import SampleConfig
 from ..model.losses import decode_chunk, sdf_at
-from ..world.geometry import signed_distance_field
+from ..world.geometry import bilinear, signed_distance_field
 from .select import geodesic_field
 
+MST_EVERY = 10  # descent iterations between re-grown spanning trees
 
-def mst_edges(dist: torch.Tensor, real: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Prim's algorithm on M small graphs at once: dist (M, N, N) (no gradient needed), real (M, N) bool.
-    Returns (i, j) (M, N-1) node indices of the tree edges; edges of graphs with fewer real nodes repeat a
-    self-edge (length 0)."""
+
+def field_and_grad(field: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The bilinear value of cell-centred fields (B, S, S) at pts (B, ..., 2) metres and its gradient (B, ..., 2),
+    as losses.sdf_at interpolates (grid_sample, align_corners=False, border: no gradient outside the centres)."""
+    index = np.broadcast_to(np.arange(len(field)).reshape((-1,) + (1,) * (pts.ndim - 2)), pts.shape[:-1])
+    # float64: bilinear clips to S - 1 - 1e-6, which float32 rounds to S - 1 (a row past the field's end)
+    val, g = bilinear(field, pts.astype(np.float64), index, with_grad=True)
+    S = field.shape[-1]
+    return val, g * ((pts > 0.5) & (pts < S - 0.5))
+
+
+def mst_edges(dist: np.ndarray, real: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Prim's algorithm on M small graphs at once: dist (M, N, N), real (M, N) bool. Returns (i, j) (M, N-1)
+    node indices of the tree edges; edges of graphs with fewer real nodes repeat a self-edge (length 0)."""
     M, N, _ = dist.shape
-    big = torch.finfo(dist.dtype).max / 4
-    first = real.float().argmax(1)  # (M,) a real node to grow from
-    in_tree = ~real.clone()
-    in_tree[torch.arange(M), first] = True
-    src_ok = real.clone()
-    d = dist.masked_fill(~src_ok[:, :, None], big)
+    big = np.inf
+    rows = np.arange(M)
+    first = real.argmax(1)  # (M,) a real node to grow from
+    in_tree = ~real.copy()
+    in_tree[rows, first] = True
+    d = np.where(real[:, :, None], dist, big)
     ii, jj = [], []
     for _ in range(N - 1):
-        cand = d.masked_fill(~(in_tree & real)[:, :, None] | in_tree[:, None, :], big)  # tree -> outside
-        flat = cand.view(M, -1).argmin(1)
+        cand = np.where((in_tree & real)[:, :, None] & ~in_tree[:, None, :], d, big).reshape(M, -1)  # tree -> out
+        flat = cand.argmin(1)
         i, j = flat // N, flat % N
-        none = cand.view(M, -1).gather(1, flat[:, None])[:, 0] >= big  # nothing left to add
-        i, j = torch.where(none, first, i), torch.where(none, first, j)
-        in_tree[torch.arange(M), j] = True
+        none = ~np.isfinite(cand[rows, flat])  # nothing left to add
+        i, j = np.where(none, first, i), np.where(none, first, j)
+        in_tree[rows, j] = True
         ii.append(i)
         jj.append(j)
-    return torch.stack(ii, 1), torch.stack(jj, 1)
+    return np.stack(ii, 1), np.stack(jj, 1)
 
 
 class Guide:
@@ -55,23 +74,28 @@ class Guide:
     def __init__(self, pc, tc, samples: SampleConfig, start: np.ndarray, real: np.ndarray, generated: np.ndarray,
                  leader: np.ndarray, sdf: np.ndarray, geo: np.ndarray, G: int, device="cpu"):
         # start (B, R, 2) m, real / generated (B, R) bool, leader (B,) token index or -1, sdf / geo (B, S, S)
-        t = lambda a, dt=torch.float32: torch.as_tensor(np.asarray(a), dtype=dt, device=device).repeat_interleave(G, 0)  # noqa: E731
-        self.pc, self.tc, self.samples = pc, tc, samples
-        self.start, self.real, self.gen = t(start), t(real, torch.bool), t(generated, torch.bool)
-        self.leader = t(leader, torch.long)
-        self.sdf, self.geo = t(sdf), t(geo)
+        rep = lambda a, dt=np.float32: np.repeat(np.asarray(a, dt), G, 0)  # noqa: E731
+        self.pc, self.tc, self.samples, self.device = pc, tc, samples, torch.device(device)
+        # the descent runs in numpy on the host: its arrays are tiny, so a torch call's dispatch would dominate
+        self.real, self.gen, self.leader = rep(real, bool), rep(generated, bool), rep(leader, np.int64)
+        self.sdf, self.geo = rep(sdf), rep(geo)  # (B G, S, S)
+        self.start = torch.as_tensor(rep(start), device=self.device)
+
+    def weights(self, H: int) -> np.ndarray:
+        w = np.ones(H, np.float32)
+        w[:self.pc.replan_every] = self.pc.guide_exec_weight
+        return w
 
     def cost(self, p: torch.Tensor) -> torch.Tensor:
-        """p (B, R, H, 2) metres -> (B,) guidance cost."""
+        """p (B, R, H, 2) metres -> (B,) guidance cost, in torch (differentiable): the reference `grad` is
+        checked against."""
         pc, tc = self.pc, self.tc
         B, R, H, _ = p.shape
-        w = torch.ones(H, device=p.device)
-        w[:pc.replan_every] = pc.guide_exec_weight
-        real = self.real.float()
-        m = pc.guide_margin
+        t = lambda a: torch.as_tensor(a, device=p.device)  # noqa: E731
+        w, real, m = t(self.weights(H)), t(self.real).float(), pc.guide_margin
         total = torch.zeros(B, device=p.device)
         if pc.guide_obstacle > 0:
-            pen = torch.relu(tc.d_obs_min + m - sdf_at(self.sdf, p)) ** 2  # (B, R, H)
+            pen = torch.relu(tc.d_obs_min + m - sdf_at(t(self.sdf), p)) ** 2  # (B, R, H)
             total = total + pc.guide_obstacle * (pen * w * real[:, :, None]).sum((1, 2))
         if R > 1 and (pc.guide_inter > 0 or pc.guide_connect > 0):
             q = p.transpose(1, 2)  # (B, H, R, 2)
@@ -83,34 +107,81 @@ class Guide:
                 total = total + pc.guide_inter * (pen.sum((2, 3)) * w).sum(1)
             if pc.guide_connect > 0:
                 flat = d.reshape(B * H, R, R)
-                i, j = mst_edges(flat.detach(), self.real.repeat_interleave(H, 0))
+                i, j = map(t, mst_edges(flat.detach().cpu().numpy(), np.repeat(self.real, H, 0)))
                 e = flat[torch.arange(B * H, device=p.device)[:, None], i, j]  # (B H, R-1)
                 pen = torch.relu(e - (tc.comm_radius - m)) ** 2
                 total = total + pc.guide_connect * (pen.sum(1).view(B, H) * w).sum(1)
         if pc.guide_goal > 0:  # every point of the leader's chunk, so that the executed moves feel the pull too
-            has = self.leader >= 0
-            lead = p[torch.arange(B, device=p.device), self.leader.clamp(min=0)]  # (B, H, 2)
-            g = sdf_at(self.geo, lead).mean(1)
+            has = t(self.leader >= 0)
+            lead = p[torch.arange(B, device=p.device), t(self.leader).clamp(min=0)]  # (B, H, 2)
+            g = sdf_at(t(self.geo), lead).mean(1)
             total = total + pc.guide_goal * torch.where(has, g, torch.zeros_like(g))
         return total
 
-    @torch.enable_grad()
-    def __call__(self, x0: torch.Tensor, given: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
-        """x0, given (B, R, H, 2) normalised chunks, fixed (B, R, 1, 1) bool -> the guided clean chunk."""
+    def trees(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each instant's minimum spanning tree of the real robots, p (B, R, H, 2) -> the tree edges as flat
+        point indices into p.reshape(-1, 2), (i, j), and each edge's move weight w_h (B H (R-1),)."""
+        B, R, H, _ = p.shape
+        q = p.transpose(0, 2, 1, 3)  # (B, H, R, 2)
+        d = np.sqrt(((q[:, :, :, None] - q[:, :, None]) ** 2).sum(-1)).reshape(B * H, R, R)
+        i, j = mst_edges(d, np.repeat(self.real, H, 0))  # (B H, R-1) robot indices
+        bh = np.arange(B * H)[:, None]
+        b, h = bh // H, bh % H
+        w = np.broadcast_to(self.weights(H)[h], i.shape)
+        return ((b * R + i) * H + h).ravel(), ((b * R + j) * H + h).ravel(), w.ravel()
+
+    def grad(self, p: np.ndarray, edges: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """d cost / d p in closed form, p (B, R, H, 2) metres (numpy) -> (B, R, H, 2); `edges`: the spanning
+        trees (from `trees`) of the connectivity term, grown from p when not given (as the reference does)."""
+        pc, tc = self.pc, self.tc
+        B, R, H, _ = p.shape
+        m = pc.guide_margin
+        if getattr(self, "_H", None) != H:  # what does not change along the descent
+            w, real = self.weights(H), self.real.astype(np.float32)
+            self._H, self._wreal = H, w * real[:, :, None]  # (B, R, H)
+            self._pairw = (real[:, :, None] * real[:, None] * (1 - np.eye(R, dtype=np.float32)))[..., None] * w
+        rows, lead = np.arange(B), np.maximum(self.leader, 0)
+        g = np.zeros_like(p)
+        if pc.guide_goal > 0:
+            _, gg = field_and_grad(self.geo, p[rows, lead])  # (B, H, 2)
+            g[rows, lead] = (pc.guide_goal / H) * gg * (self.leader >= 0)[:, None, None]
+        if pc.guide_obstacle > 0:
+            val, gs = field_and_grad(self.sdf, p)  # (B, R, H), (B, R, H, 2)
+            v = np.maximum(tc.d_obs_min + m - val, 0) * self._wreal
+            g -= (2 * pc.guide_obstacle) * v[..., None] * gs
+        if R > 1 and pc.guide_inter > 0:
+            diff = p[:, :, None] - p[:, None]  # (B, R, R, H, 2): p_i - p_j
+            d = np.sqrt((diff ** 2).sum(-1) + 1e-9)  # (B, R, R, H)
+            v = np.maximum(tc.d_coll_min + m - d, 0) * self._pairw  # (B, R, R, H)
+            g -= (2 * pc.guide_inter) * ((v / d)[..., None] * diff).sum(2)
+        if R > 1 and pc.guide_connect > 0:
+            i, j, we = edges if edges is not None else self.trees(p)
+            pf = p.reshape(-1, 2)
+            df = pf[i] - pf[j]  # (E, 2)
+            e = np.sqrt((df ** 2).sum(-1) + 1e-9)
+            ge = ((2 * pc.guide_connect) * np.maximum(e - (tc.comm_radius - m), 0) * we / e)[:, None] * df
+            n = pf.shape[0]
+            gn = np.stack([np.bincount(i, ge[:, c], n) - np.bincount(j, ge[:, c], n) for c in range(2)], -1)
+            g += gn.reshape(p.shape).astype(p.dtype)
+        return g
+
+    @torch.no_grad()
+    def __call__(self, x0: torch.Tensor, given: torch.Tensor, fixed: torch.Tensor, last: bool = True) -> torch.Tensor:
+        """x0, given (B, R, H, 2) normalised chunks, fixed (B, R, 1, 1) bool -> the guided clean chunk;
+        `last`: the final DDIM step (plan.guide_final_iters iterations, else plan.guide_iters)."""
         sc, pc = self.samples, self.pc
         x0 = torch.where(fixed, given, x0).float()
-        p0 = decode_chunk(x0, self.start, sc).detach()
-        p = p0.clone().requires_grad_(True)
-        move = self.gen[:, :, None, None].float()
-        for _ in range(pc.guide_iters):
-            c = self.cost(p).sum()
-            (grad,) = torch.autograd.grad(c, p)
-            step = pc.guide_scale * pc.guide_lr * grad * move
-            n = step.norm(dim=-1, keepdim=True)
-            step = step * torch.clamp(0.25 / n.clamp(min=1e-9), max=1.0)  # at most 0.25 m per point and step
-            with torch.no_grad():
-                p -= step
-        p = p.detach()
+        p = decode_chunk(x0, self.start, sc).cpu().numpy()
+        move = self.gen[:, :, None, None].astype(np.float32)
+        iters = pc.guide_final_iters if last and pc.guide_final_iters > 0 else pc.guide_iters
+        lr, edges = pc.guide_scale * pc.guide_lr, None
+        for it in range(iters):
+            if p.shape[1] > 1 and pc.guide_connect > 0 and it % MST_EVERY == 0:
+                edges = self.trees(p)
+            step = lr * self.grad(p, edges) * move
+            n = np.sqrt((step ** 2).sum(-1, keepdims=True))
+            p = p - step * np.minimum(0.25 / np.maximum(n, 1e-9), 1.0)  # at most 0.25 m per point and step
+        p = torch.from_numpy(p).to(x0.device)
         if sc.representation == "relative":
             prev = torch.cat([self.start[:, :, None], p[:, :, :-1]], 2)
             chunk = (p - prev) / sc.step_scale

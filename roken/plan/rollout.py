@@ -54,13 +54,14 @@ class PlanConfig:
     guide: bool = False  # set by the row name roken+guided[+safe]
     guide_scale: float = 1.0  # multiplies the descent step
     guide_steps: int = 10  # the last DDIM steps that are guided (10 = every step of DDIM-10)
-    guide_iters: int = 50  # descent iterations per guided step
+    guide_iters: int = 5  # descent iterations at each guided step but the last
+    guide_final_iters: int = 30  # descent iterations at the last DDIM step (0: guide_iters)
     guide_lr: float = 0.1  # metres per unit of cost gradient (times guide_scale), <= 0.25 m per point and step
     guide_margin: float = 0.6  # metres added to d_obs_min and d_coll_min, taken off the radius
     guide_obstacle: float = 1.0
     guide_inter: float = 1.0
     guide_connect: float = 1.0
-    guide_goal: float = 0.5  # the leader's free-space distance to the goal, mean over the chunk's points
+    guide_goal: float = 2.0  # the leader's free-space distance to the goal, mean over the chunk's points
     guide_exec_weight: float = 4.0  # weight of the executed moves (h < replan_every) in the constraint terms
     record_plans: bool = True  # store each re-plan's chunk with the episode (for the GIF)
 
@@ -79,9 +80,11 @@ def check(pc: PlanConfig, planner: RokenPlanner | None = None, team_size: int | 
     """Flags checked before anything runs, naming the flag."""
     if pc.replan_every < 1:
         raise ValueError(f"--replan-every {pc.replan_every}: must be >= 1")
-    if pc.guide and (pc.sampler != "ddim" or pc.guide_steps < 1 or pc.guide_iters < 1 or pc.guide_scale < 0):
+    if pc.guide and (pc.sampler != "ddim" or pc.guide_steps < 1 or pc.guide_iters < 1 or pc.guide_scale < 0
+                     or pc.guide_final_iters < 0):
         raise ValueError(f"guided sampling needs --sampler ddim and --guide-steps, plan.guide_iters >= 1, "
-                         f"--guide-scale >= 0 (got {pc.sampler}, {pc.guide_steps}, {pc.guide_iters}, {pc.guide_scale})")
+                         f"plan.guide_final_iters >= 0, --guide-scale >= 0 (got {pc.sampler}, {pc.guide_steps}, "
+                         f"{pc.guide_iters}, {pc.guide_final_iters}, {pc.guide_scale})")
     if pc.noise not in ("fresh", "episode"):
         raise ValueError(f"plan.noise={pc.noise!r}: choose fresh or episode")
     if pc.fallback not in ("hold", "fewest"):
