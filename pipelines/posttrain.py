@@ -38,6 +38,8 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--prompts", type=int, dest="prompts_per_iteration", help="rl.prompts_per_iteration")
     ap.add_argument("--group-size", type=int, help="rl.group_size (G candidates per prompt)")
     ap.add_argument("--eval-episodes", type=int, help="before/after evaluation on this many tasks (rl.eval_episodes)")
+    ap.add_argument("--eval-planners", help="rows of the before/after table (rl.eval_planners, default roken), e.g. "
+                                            "roken,roken+guided,roken+guided+safe")
     ap.add_argument("--prompts-per-unit", type=int, default=4, help="prompts a rollout actor samples per request")
     ap.add_argument("--gpus-per-worker", type=float, default=None,
                     help="GPUs per rollout actor (default: 1 when the cluster has GPUs)")
@@ -51,13 +53,14 @@ def before_after(cfg, pretrained: str, out: Path, episodes: int, args) -> str:
 
     rows = []
     for name, ckpt in (("before", pretrained), ("after", str(out))):
-        c = with_overrides(cfg, {"eval.planner": "roken", "eval.episodes": episodes,
+        c = with_overrides(cfg, {"eval.planner": cfg.rl.eval_planners, "eval.episodes": episodes,
                                  "eval.robots": [cfg.rl.eval_team_size], "plan.checkpoint": ckpt})
         m = evaluate(c, str(out / f"eval-{name}"), make_runner(args, gpus_per_worker=_gpus(args)), overwrite=True)
         rows.append((name, m))
     keys = ("full_success", "obstacle_collision", "inter_collision", "connectivity", "reach")
-    lines = [f"{'model':8s} " + " ".join(f"{k:>18s}" for k in keys), "-" * (9 + 19 * len(keys))]
-    lines += [f"{n:8s} " + " ".join(f"{m[k]:18.3f}" for k in keys) for n, m in rows]
+    lines = [f"{'model':8s} {'planner':20s} " + " ".join(f"{k:>18s}" for k in keys), "-" * (30 + 19 * len(keys))]
+    lines += [f"{n:8s} {p:20s} " + " ".join(f"{pm[k]:18.3f}" for k in keys)
+              for n, m in rows for p, pm in m.get("planners", {"roken": m}).items()]
     return "\n".join(lines)
 
 
@@ -70,7 +73,7 @@ def main(argv=None) -> int:
     pt = None
     try:
         cfg = load_config(args.config, named_overrides(args, "rl", ("iterations", "prompts_per_iteration",
-                                                                    "group_size", "eval_episodes")))
+                                                                    "group_size", "eval_episodes", "eval_planners")))
         check(cfg.rl)
         explain_relative_out(args.out)
         if "://" in args.out:

@@ -57,6 +57,7 @@ class RLConfig:
     keep_checkpoints: int = 3
     eval_episodes: int = 0  # before/after evaluation on this many evaluation tasks at the end (0 = none)
     eval_team_size: int = 4
+    eval_planners: str = "roken"  # the rows of the before/after table, e.g. roken,roken+guided+safe (same tasks)
     device: str = "auto"  # the learner's device (auto: cuda where available)
     rollout_device: str = "auto"  # each rollout worker's device
 
