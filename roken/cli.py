@@ -86,6 +86,20 @@ def cmd_export(args) -> int:
     return 0
 
 
+def cmd_train_gnn(args) -> int:
+    from .config import load_config
+    from .expert.gnn import train_scorer
+
+    if min(args.tasks, args.states, args.steps, args.robots) < 1:
+        raise ValueError("--tasks, --states, --steps and --robots must be >= 1")
+    cfg = load_config(args.config, [f"eval.robots=[{args.robots}]"] + args.set)
+    s = train_scorer(cfg, args.out, args.tasks, args.states, args.steps, seed=args.seed)
+    print(f"{'graphs':>8} {'good':>6} {'train acc':>10} {'held-out acc':>13} {'seconds':>8}")
+    print(f"{s['graphs']:>8} {s['good_fraction']:>6.2f} {s['train_accuracy']:>10.4f} {s['heldout_accuracy']:>13.4f} "
+          f"{s['seconds']:>8.0f}")
+    return 0
+
+
 def cmd_quickstart(rest: list[str]) -> int:
     """Runs pipelines/quickstart.py of this checkout (the pipelines are not part of the installed package)."""
     import subprocess
@@ -130,6 +144,16 @@ def main(argv: list[str] | None = None) -> int:
     x.add_argument("--which", choices=("latest", "best"), default="latest", help="checkpoint of a run folder")
     x.add_argument("--notes", help="a Markdown file appended to the model card")
     x.set_defaults(fn=cmd_export)
+    g = sub.add_parser("train-gnn", help="train the GNN baseline's graph scorer on simulator labels (CPU, minutes)")
+    g.add_argument("--out", default="models/gnn-scorer", help="folder for model.safetensors, config.json")
+    g.add_argument("--tasks", type=int, default=256, help="expert episodes on train maps the graphs come from")
+    g.add_argument("--states", type=int, default=8, help="states sampled per episode")
+    g.add_argument("--steps", type=int, default=3000)
+    g.add_argument("--robots", type=int, default=4, help="team size of the training graphs")
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--config", help="YAML config file (task, sgg and gnn sections)")
+    g.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    g.set_defaults(fn=cmd_train_gnn)
     args = ap.parse_args(argv)
     if getattr(args, "every", 1) < 1:
         print(f"error: --every {args.every}: must be >= 1 (simulator steps per frame)", file=sys.stderr)

@@ -9,6 +9,8 @@ from .data.generation import DatasetConfig
 from .data.samples import SampleConfig
 from .eval.harness import EvalConfig
 from .expert.laplacian import ExpertConfig
+from .expert.gnn import GNNConfig
+from .expert.sgg import SGGConfig
 from .model.diffusion import DiffusionConfig
 from .model.dit import ModelConfig
 from .model.losses import LossConfig
@@ -24,6 +26,8 @@ class Config:
     map: MapConfig = field(default_factory=MapConfig)
     task: TaskConfig = field(default_factory=TaskConfig)
     expert: ExpertConfig = field(default_factory=ExpertConfig)
+    sgg: SGGConfig = field(default_factory=SGGConfig)  # the SGG baseline (roken/expert/sgg.py)
+    gnn: GNNConfig = field(default_factory=GNNConfig)  # the GNN baseline (roken/expert/gnn.py)
     eval: EvalConfig = field(default_factory=EvalConfig)
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     samples: SampleConfig = field(default_factory=SampleConfig)  # training samples cut from episodes

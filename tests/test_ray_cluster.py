@@ -158,9 +158,9 @@ def test_worker_killed_mid_run_is_retried(head, tmp_path):
 
 
 def test_evaluation_fans_out_with_identical_episodes(head, tmp_path):
-    """The expert and the shipped Roken model on the same tasks, in-process and on 2 Ray actors: identical
-    episode files (one torch thread in both, as Ray gives each 1-CPU actor)."""
-    args = ["--planner", "laplacian,roken", "--checkpoint", str(ROOT / "models" / "roken-small-mixed"),
+    """The expert, the SGG and GNN baselines and the shipped Roken model on the same tasks, in-process and on 2
+    Ray actors: identical episode files (one torch thread in both, as Ray gives each 1-CPU actor)."""
+    args = ["--planner", "laplacian,sgg,gnn,roken", "--checkpoint", str(ROOT / "models" / "roken-small-mixed"),
             "--robots", "2,3", "--episodes", "2", "--set", "eval.unit_episodes=1", "--set", "expert.batch_size=4",
             "--steps", "3"]  # 3 DDIM steps: the shipped model fails these tasks and runs to the step limit
     a, b = tmp_path / "inproc", tmp_path / "ray"
@@ -170,10 +170,12 @@ def test_evaluation_fans_out_with_identical_episodes(head, tmp_path):
     r = pipeline("evaluate.py", args + ["--out", str(b), "--address", head["GCS"]], env)
     assert r.returncode == 0, r.stderr
     assert "started 2 Ray worker(s)" in r.stderr
-    for f in ("n02.parquet", "n03.parquet", "roken-n02.parquet", "roken-n03.parquet"):
+    for f in ("n02.parquet", "n03.parquet", "roken-n02.parquet", "roken-n03.parquet", "sgg-n02.parquet",
+              "sgg-n03.parquet", "gnn-n02.parquet", "gnn-n03.parquet"):
         assert (a / "episodes" / f).read_bytes() == (b / "episodes" / f).read_bytes(), f
     ma, mb = (json.loads((d / "metrics.json").read_text()) for d in (a, b))
-    assert ma["planners"] == mb["planners"] and mb["workers"] == 2 and set(ma["planners"]) == {"laplacian", "roken"}
+    assert ma["planners"] == mb["planners"] and mb["workers"] == 2
+    assert set(ma["planners"]) == {"laplacian", "sgg", "gnn", "roken"}
     assert "roken" in r.stdout and "laplacian" in r.stdout
 
 

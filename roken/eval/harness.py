@@ -3,8 +3,8 @@
 Episode e of team size N runs on map e mod M with task seed (eval.seed, N, e): the same config always
 gives the same tasks, so planners are compared on identical episodes. `eval.planner` is one planner or a
 list (`laplacian,roken,roken+safe`): every planner runs the same tasks and the table has a row per planner.
-Planners: `laplacian` (the expert) and Roken from `plan.checkpoint`, plain (`roken`, one candidate, the
-paper's) or with verified selection over plan.candidates (`roken+safe`, `roken+geodesic`; roken.plan.select).
+Planners: `laplacian` (the expert), the baselines `sgg` and `gnn` (roken.expert.sgg / .gnn) and Roken from
+`plan.checkpoint`, plain (`roken`, one candidate, the paper's) or with verified selection over plan.candidates (`roken+safe`, `roken+geodesic`; roken.plan.select).
 Output folder:
   maps/maps.parquet                               (the store contract, roken.data.store)
   episodes/n{N:02d}.parquet                       the expert's episodes
@@ -29,6 +29,8 @@ from ..data import fs
 from ..data.store import (StoreError, atomic_write_json, atomic_write_table, episode_record, episodes_table,
                           file_metadata, maps_table, read_episodes, read_json)
 from ..expert.laplacian import ExpertConfig, LaplacianExpert
+from ..expert.gnn import GNNConfig
+from ..expert.sgg import SGGConfig
 from ..progress import Progress
 from ..units import InProcessRunner, Unit
 from ..world.grid import GridMap
@@ -38,7 +40,7 @@ from ..world.tasks import TaskConfig, TaskError, sample_task
 from ..plan.rollout import PlanConfig
 from .metrics import format_table, summarize
 
-PLANNERS = ("laplacian", "roken", "roken+safe", "roken+geodesic", "roken+guided", "roken+guided+safe",
+PLANNERS = ("laplacian", "sgg", "gnn", "roken", "roken+safe", "roken+geodesic", "roken+guided", "roken+guided+safe",
             "roken+guided+geodesic")
 
 
@@ -150,7 +152,11 @@ def fingerprint(cfg, n: int, planner: str = "laplacian", model_id: str = "") -> 
     d = to_dict(cfg)
     d["eval"] = {k: v for k, v in d["eval"].items() if k not in ("robots", "planner")}
     keys = ("map", "task", "expert", "eval")
-    if planner != "laplacian":
+    if planner in ("sgg", "gnn"):
+        keys = keys + ("sgg",) + (("gnn",) if planner == "gnn" else ())
+        if planner == "gnn":
+            d["gnn"] = {k: v for k, v in d["gnn"].items() if k != "checkpoint"} | {"weights": model_id}
+    elif planner != "laplacian":
         d["plan"] = rollout_config(cfg.plan, planner).__dict__ | {"checkpoint": model_id}
         keys = keys + ("plan",)
     d = {k: v for k, v in d.items() if k in keys}
@@ -184,12 +190,27 @@ def make_tasks(cfg, maps: list[GridMap], n: int):
     return tasks, skipped
 
 
-def run_planner(cfg, planner: str, tasks, maps_by_id, cache: dict, model_blob: dict | None = None):
+def run_planner(cfg, planner: str, tasks, maps_by_id, cache: dict, model_blob: dict | None = None,
+                gnn_blob: dict | None = None):
     """Yield (index into tasks, positions (T+1, N, 2), extra columns) for one planner."""
     if planner == "laplacian":
         expert = LaplacianExpert(cfg.expert, cfg.task)
         for i, ep in expert.run([t for _, t in tasks], maps_by_id):
             yield i, ep.positions, {}
+        return
+    if planner in ("sgg", "gnn"):
+        from ..expert.sgg import SGGPlanner
+
+        if planner == "gnn":
+            from ..expert.gnn import GNNPlanner, scorer_from_bytes
+
+            if "gnn" not in cache:
+                cache["gnn"] = scorer_from_bytes(gnn_blob)
+            base = GNNPlanner(cfg.gnn, cfg.sgg, cfg.task, cfg.expert, cache["gnn"])
+        else:
+            base = SGGPlanner(cfg.sgg, cfg.task, cfg.expert)
+        for i, pos, _ in base.run([t for _, t in tasks], maps_by_id):
+            yield i, pos, {}
         return
     from ..plan import RokenPlanner, RokenRollout
 
@@ -211,9 +232,11 @@ class EvalSections:
     expert: ExpertConfig = field(default_factory=ExpertConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     plan: PlanConfig = field(default_factory=PlanConfig)
+    sgg: SGGConfig = field(default_factory=SGGConfig)
+    gnn: GNNConfig = field(default_factory=GNNConfig)
 
 
-SECTIONS = ("map", "task", "expert", "eval", "plan")
+SECTIONS = ("map", "task", "expert", "eval", "plan", "sgg", "gnn")
 
 
 def eval_unit(ctx: dict, payload: dict, cache: dict) -> list[dict]:
@@ -225,7 +248,7 @@ def eval_unit(ctx: dict, payload: dict, cache: dict) -> list[dict]:
     n, tasks, planner = payload["n"], payload["tasks"], payload.get("planner", "laplacian")
     rows: list[dict | None] = [None] * len(tasks)
     tick = ctx.get("on_episode")  # in-process runs report every finished episode (progress), Ray runs per unit
-    for i, pos, extra in run_planner(cfg, planner, tasks, by_id, cache, ctx.get("model")):
+    for i, pos, extra in run_planner(cfg, planner, tasks, by_id, cache, ctx.get("model"), ctx.get("gnn")):
         if tick is not None:
             tick()
         e, task = tasks[i]
@@ -279,6 +302,11 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
     check(cfg.eval)
     out = str(out)
     blob, model_id = load_model(cfg)
+    gnn_blob = None
+    if "gnn" in planner_names(cfg.eval):
+        from ..expert.gnn import scorer_bytes
+
+        gnn_blob = scorer_bytes(cfg.gnn.checkpoint)  # read once here: a missing scorer fails before any write
     if not overwrite:
         _refuse_other_config(out, cfg, model_id)
     planners = planner_names(cfg.eval, cfg.plan)
@@ -296,7 +324,8 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
     for n in cfg.eval.robots:
         tasks = None
         for p in planners:
-            reused = _reuse(episode_file(out, p, n), fingerprint(cfg, n, p, model_id), n)
+            pid = gnn_blob["sha256"] if p == "gnn" else model_id
+            reused = _reuse(episode_file(out, p, n), fingerprint(cfg, n, p, pid), n)
             if reused is not None:
                 done[(p, n)] = reused
                 skipped_by_n.setdefault(n, reused[1])
@@ -310,7 +339,8 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
                            size=len(tasks[j:j + k])) for j in range(0, len(tasks), k)]
     rows_by: dict[tuple[str, int], list] = {key: [] for key in todo}
     failures = []
-    ctx = {"config": to_dict(cfg), "maps": [(m.map_id, m.occupancy, m.source) for m in maps], "model": blob}
+    ctx = {"config": to_dict(cfg), "maps": [(m.map_id, m.occupancy, m.source) for m in maps], "model": blob,
+           "gnn": gnn_blob}
     bar = Progress(sum(u.size for u in units), f"[{','.join(planners)}]")
     # Progress per finished episode: in-process through ctx["on_episode"], on Ray by polling the actors' counts
     # (RayRunner.on_progress); what is shown never goes back and ends at the total when every unit is done.
@@ -352,8 +382,9 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
     for (p, n), rows in rows_by.items():
         rows.sort(key=lambda r: r["seed"])
         if (p, n) not in failed and rows:  # a file with a failed unit is not stored: a re-run redoes it
+            pid = gnn_blob["sha256"] if p == "gnn" else model_id
             atomic_write_table(episodes_table(rows), episode_file(out, p, n), "episodes",
-                               {"fingerprint": fingerprint(cfg, n, p, model_id), "skipped": skipped_by_n[n]})
+                               {"fingerprint": fingerprint(cfg, n, p, pid), "skipped": skipped_by_n[n]})
         done[(p, n)] = (rows, skipped_by_n[n])
     by_planner, table_rows = {}, []
     for p in planners:

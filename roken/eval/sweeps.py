@@ -1,4 +1,5 @@
-"""The paper's figures for one checkpoint: scalability (N = 1..10, direct and clustered), replanning frequency
+"""The paper's figures for one checkpoint: scalability (N = 1..10, direct and clustered; the expert and the SGG
+and GNN baselines beside it), replanning frequency
 (replan every 1, 2, 4, 8 chunk moves) and sensing range (whole map, 20, 10, 5 m). Each setting is an ordinary
 evaluation (roken.eval.harness) in its own folder under OUT/<sweep>/<setting>/, so a sweep resumes setting by
 setting and every episode can be plotted; the tables go to OUT/<sweep>.json and .md, the figures to .png.
@@ -21,7 +22,8 @@ SWEEPS = ("scalability", "replanning", "sensing")
 def settings(name: str, max_robots: int) -> list[tuple[str, float, dict]]:
     """(label, x value, overrides) of a sweep's settings."""
     if name == "scalability":
-        direct = [(f"direct N={n}", n, {"eval.robots": [n], "plan.cluster_size": 0, "eval.planner": "laplacian,roken"})
+        direct = [(f"direct N={n}", n, {"eval.robots": [n], "plan.cluster_size": 0,
+                                         "eval.planner": "laplacian,sgg,gnn,roken"})
                   for n in range(1, min(10, max_robots) + 1)]
         clustered = [(f"clustered N={n}", n, {"eval.robots": [n], "plan.cluster_size": 4, "eval.planner": "roken"})
                      for n in range(5, 11)]
@@ -41,7 +43,7 @@ def run_sweep(cfg, name: str, out: str, max_robots: int, runner=None) -> list[di
         print(f"== {name}: {label}", file=sys.stderr, flush=True)
         m = evaluate(with_overrides(cfg, ov), fs.join(out, name, slug), runner)
         for planner, summary in m["planners"].items():
-            mode = label.split()[0] if name == "scalability" and planner != "laplacian" else planner
+            mode = label.split()[0] if name == "scalability" and planner.startswith("roken") else planner
             rows.append({"sweep": name, "setting": label, "x": x, "planner": mode} |
                         {k: summary[k] for k in METRIC_KEYS + ("episodes",)})
     atomic_write_json({"sweep": name, "rows": rows, "config": to_dict(cfg)}, fs.join(out, f"{name}.json"))

@@ -87,7 +87,8 @@ class LaplacianExpert:
                                obs_min=task_cfg.d_obs_min, obs_full=cfg.obs_full)
 
     # ------------------------------------------------------------------ episode set-up
-    def _prepare(self, task: Task, gm: GridMap):
+    def prepare(self, task: Task, gm: GridMap):
+        """(leader reference (L, 2), its length, the episode step limit) of a task; every baseline uses them."""
         ref = leader_reference(gm, task.starts[task.leader], task.goal, self.cfg.ref_clearance,
                                spacing=self.tc.max_step / 2)
         if ref is None:
@@ -98,7 +99,7 @@ class LaplacianExpert:
 
     def step_limit(self, task: Task, gm: GridMap) -> int:
         """A task's episode step limit; every planner uses the expert's, so time-outs mean the same thing."""
-        return self._prepare(task, gm)[2]
+        return self.prepare(task, gm)[2]
 
     # ------------------------------------------------------------------ main loop
     def run(self, tasks: list[Task], maps: dict[str, GridMap]):
@@ -124,7 +125,7 @@ class LaplacianExpert:
         prepared = [None] * len(tasks)
         limits_all = []
         for i, t in enumerate(tasks):
-            prepared[i] = self._prepare(t, maps[t.map_id])
+            prepared[i] = self.prepare(t, maps[t.map_id])
             limits_all.append(prepared[i][2])
         lcap = max(len(r[0]) for r in prepared)
         st = _SlotState(S, N, lcap, max(limits_all) + 1)
@@ -230,14 +231,8 @@ class LaplacianExpert:
 
     # ------------------------------------------------------------------ pieces
     def _advance_reference(self, st: "_SlotState", lq: np.ndarray) -> np.ndarray:
-        """Project the leader onto its reference near its progress index; return the look-ahead point."""
-        S = len(lq)
-        look = int(round(self.cfg.lookahead / (self.tc.max_step / 2)))
-        sl = np.arange(S)
-        win = np.minimum(st.prog[:, None] + np.arange(24), st.ref_n[:, None] - 1)  # (S, 24)
-        d = np.linalg.norm(st.ref[sl[:, None], win] - lq[:, None], axis=-1)
-        st.prog = win[sl, np.argmin(d, axis=1)]
-        return st.ref[sl, np.minimum(st.prog + look, st.ref_n - 1)]
+        st.prog, target = advance_reference(st.ref, st.ref_n, st.prog, lq, self.cfg.lookahead, self.tc.max_step)
+        return target
 
     def _geodesic_correction(self, q, ew, Smat, st, parents, sdf) -> np.ndarray:
         """Redirect the tree-edge pull of followers whose parent is out of sight (see module doc).
@@ -347,6 +342,19 @@ class LaplacianExpert:
             step[sl[first], leader[first]] = 0.0
             step[bad_team & ~lead_moving] = 0.0
         return step
+
+
+def advance_reference(ref: np.ndarray, ref_n: np.ndarray, prog: np.ndarray, lq: np.ndarray, lookahead: float,
+                      max_step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Project each leader lq (S, 2) onto its reference ref (S, L, 2) (ref_n points) near its progress index
+    prog (S,); returns (the new progress index, the look-ahead point `lookahead` m further on)."""
+    S = len(lq)
+    look = int(round(lookahead / (max_step / 2)))  # references are resampled every max_step / 2
+    sl = np.arange(S)
+    win = np.minimum(prog[:, None] + np.arange(24), ref_n[:, None] - 1)  # (S, 24)
+    d = np.linalg.norm(ref[sl[:, None], win] - lq[:, None], axis=-1)
+    prog = win[sl, np.argmin(d, axis=1)]
+    return prog, ref[sl, np.minimum(prog + look, ref_n - 1)]
 
 
 class _SlotState:
