@@ -4,6 +4,7 @@
     python benchmarks/plan.py --threads 2 --presets paper
     python benchmarks/plan.py --device cuda --dtype bf16        # GPU
     python benchmarks/plan.py --rollout-only --checkpoint models/roken-small-mixed
+    python benchmarks/plan.py --latency-only --threads 1 --presets small      # guided vs unguided
 
 Latency: one plan = the condition (roken.data.condition), map encoding and DDIM-10 for all robots, 1 or 32
 candidates in one batch, through RokenPlanner.sample (random weights: the cost does not depend on them);
@@ -83,6 +84,7 @@ def main(argv=None):
     p.add_argument("--checkpoint", default="models/roken-small-mixed")
     p.add_argument("--episodes", type=int, default=16, help="closed-loop episodes (4 robots)")
     p.add_argument("--rollout-only", action="store_true")
+    p.add_argument("--latency-only", action="store_true")
     a = p.parse_args(argv)
     if a.threads:
         torch.set_num_threads(a.threads)
@@ -98,6 +100,8 @@ def main(argv=None):
                                  (4, 1, "default"), (4, 8, "default"), (4, 1, "10x50"), (4, 8, "10x50")):
                 ms = latency(planner, n, G, a.repeat, rng, guided != "no", old if guided == "10x50" else []) * 1e3
                 print(f"{name:<8}{n:>7}{G:>11}{guided:>10}{ms:>22.1f}")
+    if a.latency_only:
+        return
     print(f"closed loop, {a.checkpoint}, 4 robots, DDIM-10, replan every 2:")
     one = throughput(a.checkpoint, a.episodes, 1, a.device)
     many = throughput(a.checkpoint, a.episodes, 64, a.device)

@@ -24,8 +24,9 @@ from roken.eval.harness import check, evaluate, load_model, uses_roken
 
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--planner", help="planner or list: laplacian, roken, roken+safe, roken+geodesic "
-                                      "(e.g. laplacian,roken: one table, the same tasks)")
+    ap.add_argument("--planner", help="planner or list: laplacian, sgg, gnn, roken, roken+safe, roken+geodesic, "
+                                      "roken+guided, roken+guided+safe (e.g. laplacian,sgg,gnn,roken: one table, "
+                                      "the same tasks)")
     ap.add_argument("--robots", help="team size or list, e.g. 4 or 2,4,8")
     ap.add_argument("--episodes", type=int, help="episodes per team size")
     ap.add_argument("--maps", help="train, val, eval, or a folder / glob / file of .map, .png, .npy maps")
