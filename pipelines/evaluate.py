@@ -46,7 +46,8 @@ def parser() -> argparse.ArgumentParser:
     rk.add_argument("--candidates", type=int, help="candidates per re-plan for roken+safe / roken+geodesic")
     rk.add_argument("--select", choices=["none", "safe", "geodesic"], help="selection for the `roken` row")
     rk.add_argument("--guide-scale", type=float, help="roken+guided: scale of the guidance descent (default 1)")
-    rk.add_argument("--guide-steps", type=int, help="roken+guided: the last DDIM steps that are guided (default plan.guide_steps)")
+    rk.add_argument("--guide-steps", type=int,
+                    help="roken+guided: the last DDIM steps that are guided (default plan.guide_steps)")
     rk.add_argument("--sampler", choices=["ddim", "ddpm"])
     rk.add_argument("--steps", type=int, help="DDIM steps (default 10)")
     rk.add_argument("--device", help="auto (cuda where available, default), cpu or cuda")

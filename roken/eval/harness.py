@@ -4,7 +4,8 @@ Episode e of team size N runs on map e mod M with task seed (eval.seed, N, e): t
 gives the same tasks, so planners are compared on identical episodes. `eval.planner` is one planner or a
 list (`laplacian,roken,roken+safe`): every planner runs the same tasks and the table has a row per planner.
 Planners: `laplacian` (the expert), the baselines `sgg` and `gnn` (roken.expert.sgg / .gnn) and Roken from
-`plan.checkpoint`, plain (`roken`, one candidate, the paper's) or with verified selection over plan.candidates (`roken+safe`, `roken+geodesic`; roken.plan.select).
+`plan.checkpoint`, plain (`roken`, one candidate, the paper's) or with verified selection over plan.candidates
+(`roken+safe`, `roken+geodesic`; roken.plan.select).
 Output folder:
   maps/maps.parquet                               (the store contract, roken.data.store)
   episodes/n{N:02d}.parquet                       the expert's episodes
@@ -40,8 +41,8 @@ from ..world.tasks import TaskConfig, TaskError, sample_task
 from ..plan.rollout import PlanConfig
 from .metrics import format_table, summarize
 
-PLANNERS = ("laplacian", "sgg", "gnn", "roken", "roken+safe", "roken+geodesic", "roken+guided", "roken+guided+safe",
-            "roken+guided+geodesic")
+PLANNERS = ("laplacian", "sgg", "gnn", "roken", "roken+safe", "roken+geodesic", "roken+guided",
+            "roken+guided+safe", "roken+guided+geodesic")
 
 
 @dataclass
@@ -310,6 +311,7 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
     if not overwrite:
         _refuse_other_config(out, cfg, model_id)
     planners = planner_names(cfg.eval, cfg.plan)
+    weights_id = lambda p: gnn_blob["sha256"] if p == "gnn" else model_id  # noqa: E731  (the weights a row ran)
     runner = runner or InProcessRunner()
     t0 = time.perf_counter()
     maps, bad = load_maps(cfg)
@@ -324,8 +326,7 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
     for n in cfg.eval.robots:
         tasks = None
         for p in planners:
-            pid = gnn_blob["sha256"] if p == "gnn" else model_id
-            reused = _reuse(episode_file(out, p, n), fingerprint(cfg, n, p, pid), n)
+            reused = _reuse(episode_file(out, p, n), fingerprint(cfg, n, p, weights_id(p)), n)
             if reused is not None:
                 done[(p, n)] = reused
                 skipped_by_n.setdefault(n, reused[1])
@@ -382,9 +383,8 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
     for (p, n), rows in rows_by.items():
         rows.sort(key=lambda r: r["seed"])
         if (p, n) not in failed and rows:  # a file with a failed unit is not stored: a re-run redoes it
-            pid = gnn_blob["sha256"] if p == "gnn" else model_id
             atomic_write_table(episodes_table(rows), episode_file(out, p, n), "episodes",
-                               {"fingerprint": fingerprint(cfg, n, p, pid), "skipped": skipped_by_n[n]})
+                               {"fingerprint": fingerprint(cfg, n, p, weights_id(p)), "skipped": skipped_by_n[n]})
         done[(p, n)] = (rows, skipped_by_n[n])
     by_planner, table_rows = {}, []
     for p in planners:

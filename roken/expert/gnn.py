@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -111,8 +111,6 @@ class GNNPlanner(SGGPlanner):
 
     def __init__(self, cfg: GNNConfig, sgg_cfg: SGGConfig, task_cfg: TaskConfig, expert_cfg: ExpertConfig | None,
                  scorer: GraphScorer):
-        from dataclasses import replace
-
         super().__init__(replace(sgg_cfg, refine=False), task_cfg, expert_cfg)
         self.gcfg, self.scorer = cfg, scorer.eval()
 
@@ -121,7 +119,7 @@ class GNNPlanner(SGGPlanner):
         return cls(cfg, sgg_cfg, task_cfg, expert_cfg, load_scorer(cfg.checkpoint))
 
     @torch.no_grad()
-    def _place(self, q, lead_next, parents, order, padded, clr_now):
+    def _place(self, q, lead_next, parents, order, padded, clr_now, d_now):
         cfg, g, tc = self.cfg, self.gcfg, self.tc
         S, N, _ = q.shape
         sl = np.arange(S)
@@ -130,7 +128,7 @@ class GNNPlanner(SGGPlanner):
         leader = order[:, 0]
         nxt[sl, leader], placed[sl, leader] = lead_next, True
         ok_team = np.ones(S, bool)
-        step = np.linalg.norm(self.offsets, axis=1) / tc.max_step
+        step = self.step_len / tc.max_step
         for k in range(1, N):
             r = order[:, k]
             cand = q[sl, r][:, None] + self.offsets[None]  # (S, K, 2)
@@ -162,8 +160,6 @@ def make_dataset(cfg, tasks: int, states_per_episode: int, seed: int = 0, jitter
     from ..eval.harness import make_tasks
     from ..world.maps import generate_map
     from .laplacian import LaplacianExpert
-
-    from dataclasses import replace
 
     n = cfg.eval.robots[0]
     ec = replace(cfg.eval, episodes=tasks, seed=seed)
@@ -210,7 +206,8 @@ def train_scorer(cfg, out: str, tasks: int = 256, states: int = 8, steps: int = 
     t0 = time.time()
     data = make_dataset(cfg, tasks, states, seed)
     val = make_dataset(cfg, max(tasks // 8, 8), states, seed + 1)  # other tasks (other maps' episodes)
-    log(f"[train-gnn] {len(data['label'])} graphs ({(data['label'] > 0.5).mean():.2f} good), {len(val['label'])} held out, "
+    log(f"[train-gnn] {len(data['label'])} graphs ({(data['label'] > 0.5).mean():.2f} good), "
+        f"{len(val['label'])} held out, "
         f"{time.time() - t0:.0f} s")
     T = {k: torch.from_numpy(v) for k, v in data.items()}
     V = {k: torch.from_numpy(v) for k, v in val.items()}
@@ -253,8 +250,8 @@ clearance and spacing (with the SGG margins) and the team stays connected within
 
 Trained on simulator labels (`graph_labels`): {summary['graphs']} candidate graphs ({summary['good_fraction']:.2f}
 good) from states of {tasks} Laplacian-expert episodes on `train` maps ({states} states each, the team's shape
-stretched and jittered), {cfg.eval.robots[0]} robots, {steps} AdamW steps of {batch} graphs (lr {lr:g}, linear decay), {summary['seconds']:.0f} s
-on this machine's CPU.
+stretched and jittered), {cfg.eval.robots[0]} robots, {steps} AdamW steps of {batch} graphs (lr {lr:g}, linear
+decay), {summary['seconds']:.0f} s on this machine's CPU.
 
 | | accuracy (score > 0.5 vs label > 0.5) |
 | --- | --- |
@@ -277,7 +274,8 @@ def scorer_bytes(path: str) -> dict:
     d = Path(path)
     if not (d / "model.safetensors").is_file() or not (d / "config.json").is_file():
         raise FileNotFoundError(f"gnn.checkpoint {d}: no trained GNN scorer there (model.safetensors, config.json); "
-                                f"train one with `python -m roken train-gnn --out {d}`, or set --set gnn.checkpoint=DIR")
+                                f"train one with `python -m roken train-gnn --out {d}`, or pass "
+                                f"--set gnn.checkpoint=DIR")
     w = (d / "model.safetensors").read_bytes()
     return {"path": str(d), "config": json.loads((d / "config.json").read_text()), "weights": w,
             "sha256": hashlib.sha256(w).hexdigest()[:16]}

@@ -19,8 +19,8 @@ refinement", Related Work and Baselines) and the original's structure. Per decis
   4. continuous refinement: one L-BFGS-B problem (scipy.optimize) over every team's followers, minimising
      the distance to the discrete choice plus `refine_motion` x the motion and squared hinges on clearance (the
      map's bilinear SDF), spacing and the tree links (the discrete choice moved continuously to where the
-     constraints hold with less motion), each coordinate boxed to a full step; a team whose refined positions break a hard
-     constraint takes its discrete choice.
+     constraints hold with less motion), each coordinate boxed to a full step; a team whose refined positions
+     break a hard constraint takes its discrete choice.
 An episode ends when the leader is within eps_goal of its goal, or at the expert's step limit.
 """
 from __future__ import annotations
@@ -72,10 +72,12 @@ class SGGPlanner:
         rings = [(k + 1) / cfg.rings * task_cfg.max_step * (1 - 1e-4) for k in range(cfg.rings)]
         self.offsets = np.concatenate([np.zeros((1, 2))] + [r * np.stack([np.cos(ang), np.sin(ang)], 1)
                                                              for r in rings])  # (K, 2), staying first
+        self.step_len = np.linalg.norm(self.offsets, axis=1)  # (K,) each candidate's motion
 
     # ------------------------------------------------------------------ one decision step
-    def _place(self, q, lead_next, parents, order, padded, clr_now):
-        """Step 3 for every team: (next positions (S, N, 2), team feasible (S,))."""
+    def _place(self, q, lead_next, parents, order, padded, clr_now, d_now):
+        """Step 3 for every team: (next positions (S, N, 2), team feasible (S,)); d_now (S, N, N) the current
+        pairwise distances."""
         cfg, tc = self.cfg, self.tc
         S, N, _ = q.shape
         sl = np.arange(S)
@@ -83,7 +85,6 @@ class SGGPlanner:
         leader = order[:, 0]
         nxt[sl, leader], placed[sl, leader] = lead_next, True
         ok_team = np.ones(S, bool)
-        d_now = np.linalg.norm(q[:, :, None] - q[:, None], axis=-1)  # (S, N, N)
         thr_obs, thr_coll = tc.d_obs_min + cfg.margin_obs, tc.d_coll_min + cfg.margin_coll
         for k in range(1, N):
             r = order[:, k]
@@ -102,7 +103,7 @@ class SGGPlanner:
             ok_coll = (((d >= thr_coll) | (d >= d_now[sl, r][:, None])) | ~other[:, None]).all(2)
             link = np.linalg.norm(cand - nxt[sl, par][:, None], axis=-1)  # (S, K)
             ok_link = link <= tc.comm_radius - cfg.comm_margin
-            cost = np.linalg.norm(self.offsets, axis=1)[None] + cfg.cohesion * np.maximum(link - cfg.comfort, 0)
+            cost = self.step_len[None] + cfg.cohesion * np.maximum(link - cfg.comfort, 0)
             feas = ok_obs & ok_coll & ok_link
             safe = ok_obs & ok_coll
             safe[:, 0] |= ~safe.any(1)  # nothing safe: stay
@@ -224,9 +225,9 @@ class SGGPlanner:
             ok = (c >= tc.d_obs_min + cfg.margin_obs) | (c >= clr_now[sl, leader][:, None])
             ok[:, 1] = True  # staying
             ln = cand[sl, np.where(ok, np.linalg.norm(cand - target[:, None], axis=-1), np.inf).argmin(1)]
-            nxt, feasible = self._place(q, ln, parents, order, padded, clr_now)
+            nxt, feasible = self._place(q, ln, parents, order, padded, clr_now, d)
             if cfg.refine:
-                ref_pos = self._refine(q, nxt, leader, np.where(parents >= 0, parents, -1), sdf, active)
+                ref_pos = self._refine(q, nxt, leader, parents, sdf, active)
                 keep = team_feasible(ref_pos, padded, tc)
                 nxt = np.where(keep[:, None, None], ref_pos, nxt)
             nxt[~active] = q[~active]

@@ -80,6 +80,11 @@ class Guide:
         self.real, self.gen, self.leader = rep(real, bool), rep(generated, bool), rep(leader, np.int64)
         self.sdf, self.geo = rep(sdf), rep(geo)  # (B G, S, S)
         self.start = torch.as_tensor(rep(start), device=self.device)
+        # what does not change along the descent: the move weights of every robot and of every robot pair
+        w, real_f = self.weights(samples.horizon), self.real.astype(np.float32)
+        R = real_f.shape[1]
+        self._wreal = w * real_f[:, :, None]  # (B G, R, H)
+        self._pairw = (real_f[:, :, None] * real_f[:, None] * (1 - np.eye(R, dtype=np.float32)))[..., None] * w
 
     def weights(self, H: int) -> np.ndarray:
         w = np.ones(H, np.float32)
@@ -136,10 +141,6 @@ class Guide:
         pc, tc = self.pc, self.tc
         B, R, H, _ = p.shape
         m = pc.guide_margin
-        if getattr(self, "_H", None) != H:  # what does not change along the descent
-            w, real = self.weights(H), self.real.astype(np.float32)
-            self._H, self._wreal = H, w * real[:, :, None]  # (B, R, H)
-            self._pairw = (real[:, :, None] * real[:, None] * (1 - np.eye(R, dtype=np.float32)))[..., None] * w
         rows, lead = np.arange(B), np.maximum(self.leader, 0)
         g = np.zeros_like(p)
         if pc.guide_goal > 0:
