@@ -2,6 +2,9 @@
 
     python pipelines/sweep.py --checkpoint models/roken-small-mixed --episodes 200 --out runs/sweeps --local
     python pipelines/sweep.py --checkpoint RUN_DIR --sweeps replanning --episodes 50 --out runs/sw --workers 0
+    # the deployable row beside the paper's planner, on the same tasks
+    python pipelines/sweep.py --checkpoint models/roken-cpu-four --planners roken,roken+guided+geodesic \
+        --candidates 8 --episodes 50 --out runs/sweeps --local
 
 Writes OUT/<sweep>.json, .md and .png, and one evaluation folder per setting (re-running resumes).
 """
@@ -14,7 +17,7 @@ from common import USER_ERRORS, add_common_args, explain_relative_out, fail, mak
 
 from roken.config import load_config
 from roken.eval.harness import check, load_model
-from roken.eval.sweeps import SWEEPS, run_sweep
+from roken.eval.sweeps import SWEEPS, run_sweep, settings
 
 
 def main(argv=None) -> int:
@@ -23,12 +26,18 @@ def main(argv=None) -> int:
     ap.add_argument("--sweeps", default=",".join(SWEEPS), help=f"comma list of {', '.join(SWEEPS)}")
     ap.add_argument("--episodes", type=int, default=200, help="episodes per setting")
     ap.add_argument("--maps", default="eval", help="eval, val, train, or a folder of map files")
+    ap.add_argument("--planners", default="roken",
+                    help="Roken rows of every setting, e.g. roken,roken+guided+geodesic (default: roken)")
+    ap.add_argument("--candidates", type=int, help="G candidates of the selection rows (plan.candidates)")
     ap.add_argument("--out", required=True)
     add_common_args(ap)
     args = ap.parse_args(argv)
     try:
-        cfg = load_config(args.config, list(args.set) + [f"plan.checkpoint={args.checkpoint}", "eval.planner=roken",
-                                                          f"eval.episodes={args.episodes}", f"eval.maps={args.maps}"])
+        extra = [f"plan.candidates={args.candidates}"] if args.candidates is not None else []
+        cfg = load_config(args.config, list(args.set) + extra + [
+            f"plan.checkpoint={args.checkpoint}", "eval.planner=roken", f"eval.episodes={args.episodes}",
+            f"eval.maps={args.maps}"])
+        planners = tuple(p.strip() for p in args.planners.split(",") if p.strip())
         explain_relative_out(args.out)
         check(cfg.eval)
         blob, _ = load_model(cfg)
@@ -36,9 +45,10 @@ def main(argv=None) -> int:
         bad = [s for s in names if s not in SWEEPS]
         if bad:
             raise ValueError(f"--sweeps: unknown {', '.join(bad)}; choose from {', '.join(SWEEPS)}")
+        settings(names[0], 10, planners)  # a bad --planners is refused before anything runs
         runner = make_runner(args, gpus_per_worker=-1 if cfg.plan.device != "cpu" else 0)
         for name in names:
-            run_sweep(cfg, name, args.out, blob["config"]["samples"]["max_robots"], runner)
+            run_sweep(cfg, name, args.out, blob["config"]["samples"]["max_robots"], runner, planners)
             print(open(f"{args.out}/{name}.md").read())
     except USER_ERRORS as e:
         return fail(e)

@@ -55,7 +55,8 @@ def test_guidance_lowers_the_cost_and_never_moves_given_robots():
 def test_closed_form_gradient_matches_autograd_of_the_cost():
     """The descent's closed-form gradient (Guide.grad) equals autograd through the reference cost, with every
     term on, a padded robot, a leader-less prompt and points outside the map."""
-    cfg = load_config(None, ["plan.guide=true", "plan.guide_goal=0.7", "plan.guide_connect=1.3"])
+    cfg = load_config(None, ["plan.guide=true", "plan.guide_goal=0.7", "plan.guide_connect=1.3",
+                             "plan.guide_follow=0.9", "plan.guide_follow_range=8"])
     rng = np.random.default_rng(1)
     occ = (rng.random((140, 140)) < 0.05).astype(np.uint8)
     sdf, geo = known_fields(occ, (100.0, 70.0))
@@ -64,8 +65,10 @@ def test_closed_form_gradient_matches_autograd_of_the_cost():
     real = np.ones((B, R), bool)
     real[1, 3] = False
     leader = np.array([0, 2, -1])
+    lead = np.stack([known_fields(occ, start[b, max(leader[b], 0)])[1] for b in range(B)])  # the follow term
     guide = Guide(cfg.plan, cfg.task, cfg.samples, start, real, real, leader, np.stack([sdf] * B),
-                  np.stack([geo] * B), G=2)
+                  np.stack([geo] * B), G=2, lead=lead)
+    assert guide.lead is not None
     p = torch.as_tensor(rng.uniform(30, 110, (B * 2, R, 16, 2)), dtype=torch.float32)
     p[0, 0, 0] = torch.tensor([-3.0, 150.0])  # outside the canvas: the border value, no gradient
     p[0, 0, 1] = torch.tensor([139.9999, 139.99999])  # the last cell's far edge, in float32

@@ -144,6 +144,16 @@ def test_safe_selection_prefers_clean_candidates():
     v = violations(paths, padded, None, 1.0, 2.0, 15.0)
     assert v[2] == 0 and v[0] > 0 and v[1] > 0
     assert choose(v, np.array([20.0, 30.0, 10.0])) == 2, "a clean candidate beats more progress"
+    # plan.verify_moves: only a prefix must be clean; the rest's violations rank before progress
+    head = violations(paths[:, :, :2], padded, None, 1.0, 2.0, 15.0)
+    late = v - head
+    assert (late >= 0).all() and head[2] == 0 and late[0] > 0, "prefix + rest = the whole chunk's count"
+    far = paths.copy()
+    far[2, :, 2:] += [0.0, 40.0]  # the clean candidate's later points move out into the wall too
+    vf = violations(far, padded, None, 1.0, 2.0, 15.0)
+    hf = violations(far[:, :, :2], padded, None, 1.0, 2.0, 15.0)
+    assert vf[2] > 0 and hf[2] == 0
+    assert choose(hf, np.array([20.0, 30.0, 10.0]), vf - hf) == int(np.argmin(np.where(hf == 0, vf - hf, 1e9)))
 
 
 def test_evaluate_refuses_a_team_larger_than_the_model_up_front(tmp_path):

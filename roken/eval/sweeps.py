@@ -3,6 +3,8 @@ and GNN baselines beside it), replanning frequency
 (replan every 1, 2, 4, 8 chunk moves) and sensing range (whole map, 20, 10, 5 m). Each setting is an ordinary
 evaluation (roken.eval.harness) in its own folder under OUT/<sweep>/<setting>/, so a sweep resumes setting by
 setting and every episode can be plotted; the tables go to OUT/<sweep>.json and .md, the figures to .png.
+`rows` are the Roken rows each setting evaluates (plain `roken`, the paper's planner, by default; a deployable
+row such as `roken+guided+geodesic` beside it), all on the same tasks.
 """
 from __future__ import annotations
 
@@ -19,32 +21,45 @@ from .metrics import METRIC_KEYS
 SWEEPS = ("scalability", "replanning", "sensing")
 
 
-def settings(name: str, max_robots: int) -> list[tuple[str, float, dict]]:
-    """(label, x value, overrides) of a sweep's settings."""
+def settings(name: str, max_robots: int, rows: tuple[str, ...] = ("roken",)) -> list[tuple[str, float, dict]]:
+    """(label, x value, overrides) of a sweep's settings; `rows`: the Roken planner rows of every setting."""
+    bad = [r for r in rows if r != "roken" and not r.startswith("roken+")]
+    if not rows or bad:
+        raise ValueError(f"--planners {','.join(rows)}: Roken rows only (roken, roken+safe, roken+guided+geodesic, ..)")
+    roken = ",".join(rows)
     if name == "scalability":
         direct = [(f"direct N={n}", n, {"eval.robots": [n], "plan.cluster_size": 0,
-                                         "eval.planner": "laplacian,sgg,gnn,roken"})
+                                         "eval.planner": "laplacian,sgg,gnn," + roken})
                   for n in range(1, min(10, max_robots) + 1)]
-        clustered = [(f"clustered N={n}", n, {"eval.robots": [n], "plan.cluster_size": 4, "eval.planner": "roken"})
+        clustered = [(f"clustered N={n}", n, {"eval.robots": [n], "plan.cluster_size": 4, "eval.planner": roken})
                      for n in range(5, 11)]
         return direct + clustered
     if name == "replanning":
-        return [(f"replan every {k}", k, {"plan.replan_every": k, "eval.planner": "roken"}) for k in (1, 2, 4, 8)]
+        return [(f"replan every {k}", k, {"plan.replan_every": k, "eval.planner": roken}) for k in (1, 2, 4, 8)]
     if name == "sensing":
         return [(("whole map" if r == 0 else f"sensing {r:g} m"), r, {"plan.sensing_range": float(r),
-                                                                     "eval.planner": "roken"}) for r in (0, 20, 10, 5)]
+                                                                     "eval.planner": roken}) for r in (0, 20, 10, 5)]
     raise ValueError(f"--sweeps: unknown sweep {name!r}; choose from {', '.join(SWEEPS)}")
 
 
-def run_sweep(cfg, name: str, out: str, max_robots: int, runner=None) -> list[dict]:
+def line_name(sweep: str, label: str, planner: str) -> str:
+    """The plotted line of a row: the planner, and for a Roken row of the scalability sweep its rollout mode
+    (plain `roken` keeps the bare mode name, as in the paper's figure)."""
+    if sweep != "scalability" or not planner.startswith("roken"):
+        return planner
+    mode = label.split()[0]
+    return mode if planner == "roken" else f"{planner} {mode}"
+
+
+def run_sweep(cfg, name: str, out: str, max_robots: int, runner=None, planners: tuple[str, ...] = ("roken",)
+              ) -> list[dict]:
     rows = []
-    for label, x, ov in settings(name, max_robots):
+    for label, x, ov in settings(name, max_robots, planners):
         slug = label.replace(" ", "-").replace("=", "")
         print(f"== {name}: {label}", file=sys.stderr, flush=True)
         m = evaluate(with_overrides(cfg, ov), fs.join(out, name, slug), runner)
         for planner, summary in m["planners"].items():
-            mode = label.split()[0] if name == "scalability" and planner.startswith("roken") else planner
-            rows.append({"sweep": name, "setting": label, "x": x, "planner": mode} |
+            rows.append({"sweep": name, "setting": label, "x": x, "planner": line_name(name, label, planner)} |
                         {k: summary[k] for k in METRIC_KEYS + ("episodes",)})
     atomic_write_json({"sweep": name, "rows": rows, "config": to_dict(cfg)}, fs.join(out, f"{name}.json"))
     Path(out, f"{name}.md").write_text(markdown(name, rows))

@@ -9,6 +9,10 @@ that uses only what a deployed planner has (its known map and its goal), then th
                                                                      spanning tree (a connected team needs them)
   goal       mean_h geo(p_leader,h)                                 free-space (octile) distance to the goal on
                                                                      the known map, so the pull goes around blocks
+  follow     sum_h w_h ReLU(lead(p_ih) - r) / H                     each generated follower's free-space distance
+                                                                     to the leader's current position beyond
+                                                                     r = guide_follow_range: a stalled follower
+                                                                     tethers the whole chain (off by default)
 w_h = guide_exec_weight for the executed moves (h < replan_every), 1 for the others. The descent runs on the
 positions in metres (`guide_iters` steps of `guide_lr` at each guided DDIM step, `guide_final_iters` at the last
 one; each point's update clipped to 0.25 m), given robots (conditional mode, clustered rollout) never move, and
@@ -72,19 +76,24 @@ class Guide:
     """The cost of one re-plan's prompts and its descent; call it on predicted clean chunks (B G, R, H, 2)."""
 
     def __init__(self, pc, tc, samples: SampleConfig, start: np.ndarray, real: np.ndarray, generated: np.ndarray,
-                 leader: np.ndarray, sdf: np.ndarray, geo: np.ndarray, G: int, device="cpu"):
-        # start (B, R, 2) m, real / generated (B, R) bool, leader (B,) token index or -1, sdf / geo (B, S, S)
+                 leader: np.ndarray, sdf: np.ndarray, geo: np.ndarray, G: int, device="cpu",
+                 lead: np.ndarray | None = None):
+        # start (B, R, 2) m, real / generated (B, R) bool, leader (B,) token index or -1, sdf / geo (B, S, S);
+        # lead (B, S, S): free-space distance to the team leader's position (the follow term; None = off)
         rep = lambda a, dt=np.float32: np.repeat(np.asarray(a, dt), G, 0)  # noqa: E731
         self.pc, self.tc, self.samples, self.device = pc, tc, samples, torch.device(device)
         # the descent runs in numpy on the host: its arrays are tiny, so a torch call's dispatch would dominate
         self.real, self.gen, self.leader = rep(real, bool), rep(generated, bool), rep(leader, np.int64)
         self.sdf, self.geo = rep(sdf), rep(geo)  # (B G, S, S)
+        self.lead = rep(lead) if lead is not None and pc.guide_follow > 0 else None
         self.start = torch.as_tensor(rep(start), device=self.device)
         # what does not change along the descent: the move weights of every robot and of every robot pair
         w, real_f = self.weights(samples.horizon), self.real.astype(np.float32)
         R = real_f.shape[1]
         self._wreal = w * real_f[:, :, None]  # (B G, R, H)
         self._pairw = (real_f[:, :, None] * real_f[:, None] * (1 - np.eye(R, dtype=np.float32)))[..., None] * w
+        follower = self.gen & (np.arange(R)[None] != self.leader[:, None])  # generated robots, not the leader
+        self._wfollow = w * follower[:, :, None].astype(np.float32) / len(w)  # (B G, R, H)
 
     def weights(self, H: int) -> np.ndarray:
         w = np.ones(H, np.float32)
@@ -121,6 +130,9 @@ class Guide:
             lead = p[torch.arange(B, device=p.device), t(self.leader).clamp(min=0)]  # (B, H, 2)
             g = sdf_at(t(self.geo), lead).mean(1)
             total = total + pc.guide_goal * torch.where(has, g, torch.zeros_like(g))
+        if self.lead is not None:
+            pen = torch.relu(sdf_at(t(self.lead), p) - pc.guide_follow_range)  # (B, R, H)
+            total = total + pc.guide_follow * (pen * t(self._wfollow)).sum((1, 2))
         return total
 
     def trees(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -146,6 +158,9 @@ class Guide:
         if pc.guide_goal > 0:
             _, gg = field_and_grad(self.geo, p[rows, lead])  # (B, H, 2)
             g[rows, lead] = (pc.guide_goal / H) * gg * (self.leader >= 0)[:, None, None]
+        if self.lead is not None:
+            val, gl = field_and_grad(self.lead, p)  # (B, R, H), (B, R, H, 2)
+            g += pc.guide_follow * ((val > pc.guide_follow_range) * self._wfollow)[..., None] * gl
         if pc.guide_obstacle > 0:
             val, gs = field_and_grad(self.sdf, p)  # (B, R, H), (B, R, H, 2)
             v = np.maximum(tc.d_obs_min + m - val, 0) * self._wreal
@@ -193,12 +208,18 @@ class Guide:
         return torch.where(fixed, given, chunk.to(given.dtype))
 
 
+def finite_geodesic(known_occupancy: np.ndarray, point, graph=None) -> np.ndarray:
+    """(S, S) float32 free-space distance to `point` on a known map; unknown / unreachable cells: the largest
+    distance + 20 m (a descent needs finite values)."""
+    geo = geodesic_field(known_occupancy, np.asarray(point, np.float64), graph)
+    finite = np.isfinite(geo)
+    top = float(geo[finite].max()) if finite.any() else 0.0
+    return np.where(finite, geo, top + 20.0).astype(np.float32)
+
+
 def known_fields(known_occupancy: np.ndarray, goal, graph=None) -> tuple[np.ndarray, np.ndarray]:
-    """The SDF and the finite geodesic field (unknown / unreachable: the largest distance + 20 m) of a known map."""
+    """The SDF and the finite geodesic field to the goal of a known map."""
     sdf = signed_distance_field(known_occupancy)
     if goal is None:
         return sdf, np.zeros_like(sdf)
-    geo = geodesic_field(known_occupancy, np.asarray(goal, np.float64), graph)
-    finite = np.isfinite(geo)
-    top = float(geo[finite].max()) if finite.any() else 0.0
-    return sdf, np.where(finite, geo, top + 20.0).astype(np.float32)
+    return sdf, finite_geodesic(known_occupancy, goal, graph)

@@ -26,7 +26,7 @@ from ..world.geometry import pad_for_clearance
 from ..world.grid import GridMap
 from ..world.tasks import Task, TaskConfig
 from .clusters import Cluster, overlapping_clusters
-from .guidance import Guide, known_fields
+from .guidance import Guide, finite_geodesic, known_fields
 from .planner import SAMPLERS, RokenPlanner
 from .select import SELECTIONS, choose, geodesic_field, progress, violations
 
@@ -43,6 +43,7 @@ class PlanConfig:
     candidates: int = 16  # G candidates per re-plan for verified selection (plain Roken uses 1)
     select: str = "none"  # none | safe | geodesic (roken+safe / roken+geodesic rows)
     fallback: str = "hold"  # no clean candidate: "hold" (the re-planned robots stop: a safety stop) or "fewest"
+    verify_moves: int = 0  # chunk moves that must be clean (0 = all; the rest only ranks candidates; select.py)
     sampler: str = "ddim"  # ddim | ddpm
     steps: int = 10  # DDIM steps (DDPM uses every diffusion step)
     device: str = "auto"  # auto (cuda where available) | cpu | cuda
@@ -62,6 +63,8 @@ class PlanConfig:
     guide_inter: float = 1.0
     guide_connect: float = 1.0
     guide_goal: float = 2.0  # the leader's free-space distance to the goal, mean over the chunk's points
+    guide_follow: float = 0.0  # followers' free-space distance to the leader beyond guide_follow_range (0 = off)
+    guide_follow_range: float = 10.0  # metres
     guide_exec_weight: float = 4.0  # weight of the executed moves (h < replan_every) in the constraint terms
     record_plans: bool = True  # store each re-plan's chunk with the episode (for the GIF)
 
@@ -80,6 +83,8 @@ def check(pc: PlanConfig, planner: RokenPlanner | None = None, team_size: int | 
     """Flags checked before anything runs, naming the flag."""
     if pc.replan_every < 1:
         raise ValueError(f"--replan-every {pc.replan_every}: must be >= 1")
+    if pc.verify_moves < 0:
+        raise ValueError(f"plan.verify_moves={pc.verify_moves}: 0 (every planned move) or the moves to verify")
     if pc.guide and (pc.sampler != "ddim" or pc.guide_steps < 1 or pc.guide_iters < 1 or pc.guide_scale < 0
                      or pc.guide_final_iters < 0):
         raise ValueError(f"guided sampling needs --sampler ddim and --guide-steps, plan.guide_iters >= 1, "
@@ -156,11 +161,17 @@ class RokenRollout:
                     others = np.flatnonzero(done[b] & ~np.isin(np.arange(N), c.members))
                     other_paths = np.concatenate([s.q[others][:, None], planned[b][others]], axis=1)
                     viol = violations(paths, s.padded_known, other_paths, tc.d_obs_min, tc.d_coll_min, tc.comm_radius)
+                    late = None
+                    if 0 < pc.verify_moves < H:  # violations of the verified prefix (start + V moves), the rest
+                        V = pc.verify_moves + 1
+                        head = violations(paths[:, :, :V], s.padded_known, other_paths[:, :V], tc.d_obs_min,
+                                          tc.d_coll_min, tc.comm_radius)
+                        viol, late = head, viol - head
                     prog = np.zeros(self.G)
                     if c.leader >= 0 and not c.fixed[c.leader]:
                         prog = progress(s.q[s.task.leader], cand[:, c.leader, -1], s.task.goal,
                                         s.geodesic if pc.select == "geodesic" else None)
-                    g = choose(viol, prog)
+                    g = choose(viol, prog, late)
                     if viol[g] > 0 and pc.fallback == "hold":
                         cand = np.broadcast_to(s.q[c.members][None, :, None], cand.shape)
                         s.holds += 1
@@ -176,7 +187,8 @@ class RokenRollout:
         return Guide(self.pc, self.tc, self.planner.cfg, np.stack([c["start"] for c in conds]), real,
                      real & ~(np.stack([c["traj_mask"] for c in conds]) > 0), leader,
                      np.stack([s.fields[0] for s in slots]), np.stack([s.fields[1] for s in slots]), self.G,
-                     self.planner.device)
+                     self.planner.device, np.stack([s.leader_field() for s in slots]) if self.pc.guide_follow > 0
+                     else None)
 
     def run(self, tasks: list[Task], maps: dict[str, GridMap]):
         """Yield (task index, positions (T+1, N, 2) float32, info) as episodes finish (not in task order)."""
@@ -242,6 +254,12 @@ class _Slot:
         if self.ro.pc.noise == "episode":
             return torch.Generator().manual_seed(self.seed + stage)
         return self.gen
+
+    def leader_field(self) -> np.ndarray:
+        """(S, S) free-space distance to the leader's current position on the known map (the follow term)."""
+        known = self.gm.occupancy if self.seen is None else known_occupancy(self.gm.occupancy, self.seen)
+        graph = self.gm.free_graph if self.seen is None else None
+        return finite_geodesic(known, self.q[self.task.leader], graph)
 
     @property
     def finished(self) -> bool:

@@ -7,6 +7,10 @@ the team's positions and the goal; never the true map or the expert.
             planned point (start included); take the one whose leader makes the most straight-line progress
             toward the goal. With no clean candidate the team holds position for this re-plan (a safety
             stop; plan.fallback = "fewest" executes the candidate with the fewest violations instead).
+            With plan.verify_moves = V > 0 only the first V moves must be clean (the ones the next re-plans
+            execute); the rest of the chunk ranks the clean-prefix candidates by its violation count, then
+            progress. The receding horizon re-plans those later moves anyway, and at a block face the model's
+            late points graze the block in every candidate, which held the team for good.
   geodesic  the same filter, ranked by progress along the free-space (octile) distance to the goal on the
             known map, so a plan that enters a dead end scores below one that goes round the wall.
 """
@@ -65,6 +69,8 @@ def progress(start: np.ndarray, ends: np.ndarray, goal: np.ndarray, field: np.nd
     return out.astype(np.float64)
 
 
-def choose(viol: np.ndarray, prog: np.ndarray) -> int:
-    """Index of the best candidate: zero violations first, then most progress."""
-    return int(np.lexsort((-prog, viol))[0])
+def choose(viol: np.ndarray, prog: np.ndarray, late: np.ndarray | None = None) -> int:
+    """Index of the best candidate: zero violations first (viol: in the verified moves), then fewest violations
+    in the unverified rest (late, when given), then most progress."""
+    keys = (-prog, viol) if late is None else (-prog, late, viol)
+    return int(np.lexsort(keys)[0])
