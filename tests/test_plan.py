@@ -44,6 +44,18 @@ def test_conditional_mode_returns_given_robots_exactly(tiny):
     assert np.array_equal(out, again)
 
 
+def test_noise_scale_is_the_sampling_temperature(tiny):
+    """plan.noise_scale multiplies the initial noise of deterministic DDIM: near 0 every candidate is the same
+    plan, at 1 the candidates are the model's own distribution."""
+    from roken.data.condition import build_condition
+
+    occ = np.zeros((140, 140), np.uint8)
+    cond = build_condition(occ, np.array([[40.0, 40.0], [45.0, 40.0]]), 0, (100.0, 100.0), tiny.cfg, tokens=2)
+    cold = tiny.sample([cond], 4, generators=[torch.Generator().manual_seed(0)], noise_scale=1e-6)[0]
+    warm = tiny.sample([cond], 4, generators=[torch.Generator().manual_seed(0)])[0]
+    assert np.abs(cold - cold[:1]).max() < 1e-3 < np.abs(warm - warm[:1]).max()
+
+
 def test_a_map_off_the_canvas_is_fitted_and_mapped_back(tiny):
     occ = np.zeros((35, 50), np.uint8)  # scaled up 2x (canvas 140), then centred
     pos = np.array([[10.0, 10.0], [14.0, 12.0]])

@@ -97,10 +97,12 @@ class RokenPlanner:
     # ------------------------------------------------------------------ batched core
     @torch.no_grad()
     def sample(self, conds: list[dict], candidates: int = 1, sampler: str = "ddim", steps: int = 10,
-               generators: list[torch.Generator] | None = None, guide=None, guide_steps: int = 0) -> np.ndarray:
+               generators: list[torch.Generator] | None = None, guide=None, guide_steps: int = 0,
+               noise_scale: float = 1.0) -> np.ndarray:
         """conds: build_condition outputs with the same token count T; returns (B, G, T, H, 2) planned
         positions in metres (given robots exactly as given). generators: one per prompt (its candidates' noise
-        comes from it alone, so a prompt's plan does not depend on the other prompts in the batch)."""
+        comes from it alone, so a prompt's plan does not depend on the other prompts in the batch).
+        noise_scale: the initial noise's standard deviation (< 1: a lower-temperature sample, nearer the mode)."""
         if sampler not in SAMPLERS:
             raise ValueError(f"--sampler {sampler!r}: choose one of {', '.join(SAMPLERS)}")
         G, dev = candidates, self.device
@@ -108,7 +110,10 @@ class RokenPlanner:
         noise = None
         if generators is not None:
             def noise(shape):  # shape (B * G, T, H, 2): each prompt's G rows from its own generator
-                return torch.cat([torch.randn((G,) + tuple(shape[1:]), generator=g) for g in generators])
+                return noise_scale * torch.cat([torch.randn((G,) + tuple(shape[1:]), generator=g) for g in generators])
+        elif noise_scale != 1.0:
+            def noise(shape):
+                return noise_scale * torch.randn(tuple(shape))
         with self.amp:
             prompt = make_prompt(self.model, {k: batch[k] for k in COND_KEYS + ("map",)}, batch["chunk"], G)
             if sampler == "ddim":

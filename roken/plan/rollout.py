@@ -50,6 +50,7 @@ class PlanConfig:
     dtype: str = "fp32"  # fp32 | bf16 (autocast)
     batch_size: int = 64  # episodes stepped together
     seed: int = 0
+    noise_scale: float = 1.0  # initial noise std of the sampler (< 1: lower temperature)
     noise: str = "fresh"  # fresh: new noise at every re-plan | episode: one noise draw per episode, reused at each
     # constraint-guided sampling (roken+guided rows; roken/plan/guidance.py): the cost's weights and its descent
     guide: bool = False  # set by the row name roken+guided[+safe]
@@ -83,6 +84,8 @@ def check(pc: PlanConfig, planner: RokenPlanner | None = None, team_size: int | 
     """Flags checked before anything runs, naming the flag."""
     if pc.replan_every < 1:
         raise ValueError(f"--replan-every {pc.replan_every}: must be >= 1")
+    if not pc.noise_scale > 0:
+        raise ValueError(f"plan.noise_scale={pc.noise_scale}: must be > 0 (1 = the model's own distribution)")
     if pc.verify_moves < 0:
         raise ValueError(f"plan.verify_moves={pc.verify_moves}: 0 (every planned move) or the moves to verify")
     if pc.guide and (pc.sampler != "ddim" or pc.guide_steps < 1 or pc.guide_iters < 1 or pc.guide_scale < 0
@@ -149,7 +152,7 @@ class RokenRollout:
                                              given=planned[b][c.members], fixed=c.fixed, seen=s.seen, tokens=T))
             guide = self.guide([slots[b] for b in rows], conds) if pc.guide else None
             out = self.planner.sample(conds, self.G, pc.sampler, pc.steps, [slots[b].generator(stage) for b in rows],
-                                      guide, pc.guide_steps)
+                                      guide, pc.guide_steps, pc.noise_scale)
             for j, b in enumerate(rows):
                 s, c = slots[b], cl[b][stage]
                 m = len(c.members)
