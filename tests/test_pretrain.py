@@ -219,7 +219,7 @@ def test_recipes_load_and_are_consistent(recipe):
     assert (cfg.samples.subteam_prob > 0) == (recipe == "four-masked.yaml")
 
 
-@pytest.mark.parametrize("name", ["roken-small-mixed", "roken-cpu-four"])
+@pytest.mark.parametrize("name", ["roken-small-mixed", "roken-cpu-four", "roken-cpu-four-masked"])
 def test_the_shipped_model_loads_and_plans(name):
     shipped = ROOT / "models" / name
     loaded = ckpt.load(shipped, task_max_step=0.5)
