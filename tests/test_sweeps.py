@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from roken.eval.sweeps import line_name, settings
+from roken.eval.sweeps import line_name, markdown, settings
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -20,6 +20,10 @@ def test_settings_carry_every_roken_row_and_refuse_others():
     assert line_name("scalability", "clustered N=6", "roken") == "clustered"
     assert line_name("scalability", "clustered N=6", "roken+guided") == "roken+guided clustered"
     assert line_name("sensing", "sensing 10 m", "roken+guided") == "roken+guided"
+    row = {"setting": "sensing 5 m", "planner": "roken", "episodes": 3, "full_success": 0.0, "obstacle_collision": 1.0,
+           "inter_collision": 0.0, "connectivity": 1.0, "reach": 0.0}
+    for missing in (float("nan"), None):  # NaN in memory, null once a reused setting's metrics.json is read
+        assert markdown("sensing", [row | {"length": missing}]).rstrip().endswith("| 0.000 | - |")
     with pytest.raises(ValueError, match="Roken rows only"):
         settings("sensing", 10, ("roken", "sgg"))
 

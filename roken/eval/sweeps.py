@@ -73,7 +73,7 @@ def markdown(name: str, rows: list[dict]) -> str:
     for r in rows:
         lines.append(f"| {r['setting']} | {r['planner']} | {r['episodes']} | {r['full_success']:.3f} | "
                      f"{r['obstacle_collision']:.3f} | {r['inter_collision']:.3f} | {r['connectivity']:.3f} | "
-                     f"{r['reach']:.3f} | " + ("-" if r["length"] != r["length"] else f"{r['length']:.3f}") + " |")
+                     f"{r['reach']:.3f} | " + ("-" if r["length"] is None or r["length"] != r["length"] else f"{r['length']:.3f}") + " |")
     return "\n".join(lines) + "\n"
 
 
