@@ -17,7 +17,7 @@ from common import USER_ERRORS, add_common_args, explain_relative_out, fail, mak
 
 from roken.config import load_config
 from roken.eval.harness import check, load_model
-from roken.eval.sweeps import SWEEPS, run_sweep, settings
+from roken.eval.sweeps import SWEEPS, check_rows, run_sweep
 
 
 def main(argv=None) -> int:
@@ -45,7 +45,7 @@ def main(argv=None) -> int:
         bad = [s for s in names if s not in SWEEPS]
         if bad:
             raise ValueError(f"--sweeps: unknown {', '.join(bad)}; choose from {', '.join(SWEEPS)}")
-        settings(names[0], 10, planners)  # a bad --planners is refused before anything runs
+        check_rows(planners)
         runner = make_runner(args, gpus_per_worker=-1 if cfg.plan.device != "cpu" else 0)
         for name in names:
             run_sweep(cfg, name, args.out, blob["config"]["samples"]["max_robots"], runner, planners)

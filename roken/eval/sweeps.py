@@ -21,11 +21,16 @@ from .metrics import METRIC_KEYS
 SWEEPS = ("scalability", "replanning", "sensing")
 
 
-def settings(name: str, max_robots: int, rows: tuple[str, ...] = ("roken",)) -> list[tuple[str, float, dict]]:
-    """(label, x value, overrides) of a sweep's settings; `rows`: the Roken planner rows of every setting."""
+def check_rows(rows: tuple[str, ...]) -> None:
+    """The Roken rows of a sweep (--planners), refused before anything runs when one is not a Roken row."""
     bad = [r for r in rows if r != "roken" and not r.startswith("roken+")]
     if not rows or bad:
         raise ValueError(f"--planners {','.join(rows)}: Roken rows only (roken, roken+safe, roken+guided+geodesic, ..)")
+
+
+def settings(name: str, max_robots: int, rows: tuple[str, ...] = ("roken",)) -> list[tuple[str, float, dict]]:
+    """(label, x value, overrides) of a sweep's settings; `rows`: the Roken planner rows of every setting."""
+    check_rows(rows)
     roken = ",".join(rows)
     if name == "scalability":
         direct = [(f"direct N={n}", n, {"eval.robots": [n], "plan.cluster_size": 0,
@@ -73,8 +78,13 @@ def markdown(name: str, rows: list[dict]) -> str:
     for r in rows:
         lines.append(f"| {r['setting']} | {r['planner']} | {r['episodes']} | {r['full_success']:.3f} | "
                      f"{r['obstacle_collision']:.3f} | {r['inter_collision']:.3f} | {r['connectivity']:.3f} | "
-                     f"{r['reach']:.3f} | " + ("-" if r["length"] is None or r["length"] != r["length"] else f"{r['length']:.3f}") + " |")
+                     f"{r['reach']:.3f} | {_num(r['length'])} |")
     return "\n".join(lines) + "\n"
+
+
+def _num(x) -> str:
+    """A table figure; '-' where there is none (NaN in memory, null once a metrics.json is read back)."""
+    return "-" if x is None or x != x else f"{x:.3f}"
 
 
 def plot(name: str, rows: list[dict], out: Path) -> Path:

@@ -163,13 +163,15 @@ class RokenRollout:
                     paths = np.concatenate([start, cand], axis=2)  # (G, m, H+1, 2)
                     others = np.flatnonzero(done[b] & ~np.isin(np.arange(N), c.members))
                     other_paths = np.concatenate([s.q[others][:, None], planned[b][others]], axis=1)
-                    viol = violations(paths, s.padded_known, other_paths, tc.d_obs_min, tc.d_coll_min, tc.comm_radius)
+                    count = lambda a, b: violations(a, s.padded_known, b, tc.d_obs_min, tc.d_coll_min,  # noqa: E731
+                                                    tc.comm_radius)
                     late = None
-                    if 0 < pc.verify_moves < H:  # violations of the verified prefix (start + V moves), the rest
+                    if 0 < pc.verify_moves < H:  # the verified prefix (start + V moves) and the rest, counted apart
                         V = pc.verify_moves + 1
-                        head = violations(paths[:, :, :V], s.padded_known, other_paths[:, :V], tc.d_obs_min,
-                                          tc.d_coll_min, tc.comm_radius)
-                        viol, late = head, viol - head
+                        viol = count(paths[:, :, :V], other_paths[:, :V])
+                        late = count(paths[:, :, V:], other_paths[:, V:])
+                    else:
+                        viol = count(paths, other_paths)
                     prog = np.zeros(self.G)
                     if c.leader >= 0 and not c.fixed[c.leader]:
                         prog = progress(s.q[s.task.leader], cand[:, c.leader, -1], s.task.goal,
