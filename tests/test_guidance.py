@@ -66,14 +66,17 @@ def test_closed_form_gradient_matches_autograd_of_the_cost():
     real[1, 3] = False
     leader = np.array([0, 2, -1])
     lead = np.stack([known_fields(occ, start[b, max(leader[b], 0)])[1] for b in range(B)])  # the follow term
+    out_pts = rng.uniform(30, 110, (B, 3, 16, 2)).astype(np.float32)  # robots outside the prompt (clusters)
+    out_w = (rng.random((B, 3, 16)) < 0.7).astype(np.float32)
     guide = Guide(cfg.plan, cfg.task, cfg.samples, start, real, real, leader, np.stack([sdf] * B),
-                  np.stack([geo] * B), G=2, lead=lead)
-    assert guide.lead is not None
+                  np.stack([geo] * B), G=2, lead=lead, outside=(out_pts, out_w))
+    assert guide.lead is not None and guide.out_pts is not None
     p = torch.as_tensor(rng.uniform(30, 110, (B * 2, R, 16, 2)), dtype=torch.float32)
     p[0, 0, 0] = torch.tensor([-3.0, 150.0])  # outside the canvas: the border value, no gradient
     p[0, 0, 1] = torch.tensor([139.9999, 139.99999])  # the last cell's far edge, in float32
     p[2, 1, :] = p[2, 2, :] + 0.5  # two robots too close: the inter-robot term
     p[4, 0, :] = p[4, 1, :] + 30.0  # far apart: the connectivity term
+    p[5, 1, :] = torch.as_tensor(out_pts[2, 0]) + 0.4  # close to a robot outside the prompt
     q = p.clone().requires_grad_(True)
     (ref,) = torch.autograd.grad(guide.cost(q).sum(), q)
     ours = torch.from_numpy(guide.grad(p.numpy()))
@@ -117,3 +120,28 @@ def test_guidance_leaves_a_clean_chunk_unchanged():
         for last in (False, True):
             out = guide(x0, given, fixed, last=last)
             assert torch.allclose(out, x0, atol=1e-5), (out - x0).abs().max()
+
+
+def test_guidance_keeps_clear_of_robots_outside_the_prompt():
+    """A robot outside the cluster (clustered rollout) standing on the generated robot's path pushes the path
+    aside over the weighted moves; without it the path goes straight through."""
+    from roken.model.losses import decode_chunk
+
+    cfg = load_config(None, ["plan.guide=true", "plan.guide_goal=0"])
+    occ = np.zeros((140, 140), np.uint8)
+    sdf, geo = known_fields(occ, (100.0, 70.0))
+    start = np.array([[[40.0, 70.0]]], np.float32)
+    x0 = torch.zeros(1, 1, 16, 2)
+    x0[..., 0] = 0.4  # 0.8 m per move along +x
+    given, fixed = torch.zeros_like(x0), torch.zeros(1, 1, 1, 1, dtype=torch.bool)
+    stand = np.broadcast_to(np.array([41.6, 70.5], np.float32), (1, 1, 16, 2)).copy()  # beside move 2's point
+    w = np.zeros((1, 1, 16), np.float32)
+    w[0, 0, :2] = 1  # the executed moves only
+    base = Guide(cfg.plan, cfg.task, cfg.samples, start, np.ones((1, 1), bool), np.ones((1, 1), bool),
+                 np.array([0]), sdf[None], geo[None], 1)
+    assert torch.allclose(base(x0, given, fixed), x0, atol=1e-5)
+    guide = Guide(cfg.plan, cfg.task, cfg.samples, start, np.ones((1, 1), bool), np.ones((1, 1), bool),
+                  np.array([0]), sdf[None], geo[None], 1, outside=(stand, w))
+    out = decode_chunk(guide(x0, given, fixed), guide.start, cfg.samples)[0, 0].numpy()
+    d = np.linalg.norm(out[:2] - stand[0, 0, :2], axis=-1)
+    assert d.min() >= cfg.task.d_coll_min, d

@@ -113,6 +113,32 @@ def test_clustered_rollout_holds_earlier_robots_fixed(tiny):
     assert len(seen_given) >= 2 and max(seen_given) < 1e-4
 
 
+def test_clustered_guidance_sees_every_robot_outside_the_cluster(tiny):
+    """Each cluster's guidance gets the team's other robots: earlier clusters' plans at every move, later
+    clusters' robots where they stand over the executed moves only."""
+    cfg = load_config(None, [])
+    gm = generate_map(cfg.map, "eval", 0)
+    tasks, _ = make_tasks(load_config(None, ["eval.episodes=1"]), [gm], 7)
+    pc = PlanConfig(cluster_size=4, cluster_new=1, batch_size=4, device="cpu", guide=True, select="safe",
+                    candidates=2, guide_steps=2, guide_iters=1, guide_final_iters=1)
+    ro = RokenRollout(tiny, pc, cfg.task)
+    from roken.plan.rollout import _Slot
+    seen, real = [], ro.outside
+    ro.outside = lambda slots, clusters, planned, done: seen.append(
+        (clusters[0], done[0].copy(), real(slots, clusters, planned, done))) or seen[-1][2]
+    slot = _Slot(0, tasks[0][1], gm, ro)
+    plan = ro.plan_step([slot])
+    assert len(seen) == len(ro.clusters(slot.q, slot.task.leader)) >= 3
+    for c, done, (pts, w) in seen:
+        others = np.setdiff1d(np.arange(7), c.members)
+        assert pts.shape == (1, 7 - len(c.members), 16, 2) and w.shape == pts.shape[:3]
+        for k, o in enumerate(others):
+            if done[o]:  # planned in an earlier cluster: its plan, every move
+                assert np.array_equal(pts[0, k], plan[0, o]) and (w[0, k] == 1).all()
+            else:  # a later cluster's robot: where it stands, the executed moves only
+                assert np.allclose(pts[0, k], slot.q[o]) and w[0, k].tolist() == [1.0] * 2 + [0.0] * 14
+
+
 def test_sensing_mask_hides_exactly_the_cells_beyond_the_range():
     pos = np.array([[20.3, 30.7], [60.0, 61.5]])
     seen = sensed_cells(pos, 140, 10.0)
@@ -178,3 +204,15 @@ def test_evaluate_refuses_a_team_larger_than_the_model_up_front(tmp_path):
                         "--robots", "2", "--episodes", "1", "--out", str(tmp_path / "e"), "--workers", "0"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "--checkpoint" in r.stderr and not (tmp_path / "e").exists()
+
+
+def test_held_hits_counts_close_encounters_with_standing_robots():
+    from roken.plan.select import held_hits
+
+    paths = np.zeros((3, 2, 2, 2))
+    paths[0, 0, 1] = [10.0, 10.5]  # candidate 0: robot 0 comes 0.5 m from the standing robot at move 1
+    paths[1, :, 1] = [[20.0, 20.0], [10.0, 12.0]]  # candidate 1: 2 m away, clear
+    paths[2, 1, :] = [[10.2, 10.0], [9.9, 10.0]]  # candidate 2: robot 1 at it at both points
+    held = np.array([[10.0, 10.0]])
+    assert held_hits(paths, held, 1.0).tolist() == [1, 0, 2]
+    assert held_hits(paths, held[:0], 1.0).tolist() == [0, 0, 0]

@@ -4,7 +4,11 @@ During the last `plan.guide_steps` DDIM steps, the predicted clean chunk is move
 that uses only what a deployed planner has (its known map and its goal), then the sampler goes on from it:
 
   obstacle   sum_h w_h ReLU(d_obs_min + margin - sdf(p_ih))^2       bilinear SDF of the known map (metres)
-  inter      sum_h w_h ReLU(d_coll_min + margin - |p_ih - p_jh|)^2  every pair, given robots included
+  inter      sum_h w_h ReLU(d_coll_min + margin - |p_ih - p_jh|)^2  every pair, given robots included, and
+                                                                     every robot against the team's robots
+                                                                     outside the prompt (clustered rollout:
+                                                                     earlier clusters' plans, later clusters'
+                                                                     robots where they stand, `outside`)
   connect    sum_h w_h ReLU(|p_ih - p_jh| - (R - margin))^2         over the edges of each instant's minimum
                                                                      spanning tree (a connected team needs them)
   goal       mean_h geo(p_leader,h)                                 free-space (octile) distance to the goal on
@@ -77,9 +81,11 @@ class Guide:
 
     def __init__(self, pc, tc, samples: SampleConfig, start: np.ndarray, real: np.ndarray, generated: np.ndarray,
                  leader: np.ndarray, sdf: np.ndarray, geo: np.ndarray, G: int, device="cpu",
-                 lead: np.ndarray | None = None):
+                 lead: np.ndarray | None = None, outside: tuple[np.ndarray, np.ndarray] | None = None):
         # start (B, R, 2) m, real / generated (B, R) bool, leader (B,) token index or -1, sdf / geo (B, S, S);
-        # lead (B, S, S): free-space distance to the team leader's position (the follow term; None = off)
+        # lead (B, S, S): free-space distance to the team leader's position (the follow term; None = off);
+        # outside: (points (B, K, H, 2) m, weights (B, K, H)) of team robots that are not in the prompt, which
+        # its robots must not come near (the inter-robot hinge, one-sided: they never move); None = none
         rep = lambda a, dt=np.float32: np.repeat(np.asarray(a, dt), G, 0)  # noqa: E731
         self.pc, self.tc, self.samples, self.device = pc, tc, samples, torch.device(device)
         # the descent runs in numpy on the host: its arrays are tiny, so a torch call's dispatch would dominate
@@ -94,6 +100,10 @@ class Guide:
         self._pairw = (real_f[:, :, None] * real_f[:, None] * (1 - np.eye(R, dtype=np.float32)))[..., None] * w
         follower = self.gen & (np.arange(R)[None] != self.leader[:, None])  # generated robots, not the leader
         self._wfollow = w * follower[:, :, None].astype(np.float32) / len(w)  # (B G, R, H)
+        self.out_pts = self._wout = None
+        if outside is not None and outside[0].shape[1] > 0 and pc.guide_inter > 0:
+            self.out_pts = rep(outside[0])[:, None]  # (B G, 1, K, H, 2)
+            self._wout = rep(outside[1])[:, None] * w * real_f[:, :, None, None]  # (B G, R, K, H)
 
     def weights(self, H: int) -> np.ndarray:
         w = np.ones(H, np.float32)
@@ -125,6 +135,10 @@ class Guide:
                 e = flat[torch.arange(B * H, device=p.device)[:, None], i, j]  # (B H, R-1)
                 pen = torch.relu(e - (tc.comm_radius - m)) ** 2
                 total = total + pc.guide_connect * (pen.sum(1).view(B, H) * w).sum(1)
+        if self.out_pts is not None:
+            d = (p[:, :, None] - t(self.out_pts)).pow(2).sum(-1).add(1e-9).sqrt()  # (B, R, K, H)
+            pen = torch.relu(tc.d_coll_min + m - d) ** 2 * t(self._wout)
+            total = total + pc.guide_inter * pen.sum((1, 2, 3))
         if pc.guide_goal > 0:  # every point of the leader's chunk, so that the executed moves feel the pull too
             has = t(self.leader >= 0)
             lead = p[torch.arange(B, device=p.device), t(self.leader).clamp(min=0)]  # (B, H, 2)
@@ -169,6 +183,11 @@ class Guide:
             diff = p[:, :, None] - p[:, None]  # (B, R, R, H, 2): p_i - p_j
             d = np.sqrt((diff ** 2).sum(-1) + 1e-9)  # (B, R, R, H)
             v = np.maximum(tc.d_coll_min + m - d, 0) * self._pairw  # (B, R, R, H)
+            g -= (2 * pc.guide_inter) * ((v / d)[..., None] * diff).sum(2)
+        if self.out_pts is not None:
+            diff = p[:, :, None] - self.out_pts  # (B, R, K, H, 2)
+            d = np.sqrt((diff ** 2).sum(-1) + 1e-9)
+            v = np.maximum(tc.d_coll_min + m - d, 0) * self._wout
             g -= (2 * pc.guide_inter) * ((v / d)[..., None] * diff).sum(2)
         if R > 1 and pc.guide_connect > 0:
             i, j, we = edges if edges is not None else self.trees(p)

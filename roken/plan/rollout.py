@@ -28,7 +28,7 @@ from ..world.tasks import Task, TaskConfig
 from .clusters import Cluster, overlapping_clusters
 from .guidance import Guide, finite_geodesic, known_fields
 from .planner import SAMPLERS, RokenPlanner
-from .select import SELECTIONS, choose, geodesic_field, progress, violations
+from .select import SELECTIONS, choose, geodesic_field, held_hits, progress, violations
 
 
 @dataclass
@@ -150,7 +150,9 @@ class RokenRollout:
                 goal = s.task.goal if c.leader >= 0 else None
                 conds.append(build_condition(s.gm.occupancy, s.q[c.members], c.leader, goal, self.planner.cfg,
                                              given=planned[b][c.members], fixed=c.fixed, seen=s.seen, tokens=T))
-            guide = self.guide([slots[b] for b in rows], conds) if pc.guide else None
+            outside = self.outside([slots[b] for b in rows], [cl[b][stage] for b in rows],
+                                   [planned[b] for b in rows], [done[b] for b in rows]) if pc.guide else None
+            guide = self.guide([slots[b] for b in rows], conds, outside) if pc.guide else None
             out = self.planner.sample(conds, self.G, pc.sampler, pc.steps, [slots[b].generator(stage) for b in rows],
                                       guide, pc.guide_steps, pc.noise_scale)
             for j, b in enumerate(rows):
@@ -172,6 +174,9 @@ class RokenRollout:
                         late = count(paths[:, :, V:], other_paths[:, V:])
                     else:
                         viol = count(paths, other_paths)
+                    # later clusters' robots where they stand: the moves executed before they re-plan keep clear
+                    held = ~done[b] & ~np.isin(np.arange(N), c.members)
+                    viol = viol + held_hits(paths[:, :, 1:pc.replan_every + 1], s.q[held], tc.d_coll_min)
                     prog = np.zeros(self.G)
                     if c.leader >= 0 and not c.fixed[c.leader]:
                         prog = progress(s.q[s.task.leader], cand[:, c.leader, -1], s.task.goal,
@@ -185,7 +190,25 @@ class RokenRollout:
                 done[b][gen] = True
         return planned
 
-    def guide(self, slots: list["_Slot"], conds: list[dict]) -> Guide:
+    def outside(self, slots: list["_Slot"], clusters: list[Cluster], planned: list[np.ndarray],
+                done: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray] | None:
+        """The team's robots outside each prompt's cluster, for the guidance's inter-robot term: (points (B, K, H,
+        2), weights (B, K, H)). Robots planned in an earlier cluster count with their plans at every move; robots of
+        later clusters where they stand, over the executed moves only (they may hold there: a later cluster with
+        no clean candidate does, and the later moves are re-planned before they run). None in direct rollout."""
+        N, H = len(slots[0].q), self.planner.cfg.horizon
+        K = N - min(len(c.members) for c in clusters)
+        if K == 0:
+            return None
+        pts, wts = np.zeros((len(slots), K, H, 2), np.float32), np.zeros((len(slots), K, H), np.float32)
+        for j, (s, c) in enumerate(zip(slots, clusters)):
+            others = np.setdiff1d(np.arange(N), c.members)
+            now = np.broadcast_to(s.q[others][:, None], (len(others), H, 2))
+            pts[j, :len(others)] = np.where(done[j][others][:, None, None], planned[j][others], now)
+            wts[j, :len(others)] = np.where(done[j][others][:, None], 1.0, np.arange(H)[None] < self.pc.replan_every)
+        return pts, wts
+
+    def guide(self, slots: list["_Slot"], conds: list[dict], outside=None) -> Guide:
         """The guidance of one batched model call: each prompt's known-map fields, starts and masks."""
         real = np.stack([c["robot_mask"] > 0 for c in conds])
         leader = np.array([int(np.argmax(c["goal_mask"])) if c["goal_mask"].any() else -1 for c in conds])
@@ -193,7 +216,7 @@ class RokenRollout:
                      real & ~(np.stack([c["traj_mask"] for c in conds]) > 0), leader,
                      np.stack([s.fields[0] for s in slots]), np.stack([s.fields[1] for s in slots]), self.G,
                      self.planner.device, np.stack([s.leader_field() for s in slots]) if self.pc.guide_follow > 0
-                     else None)
+                     else None, outside)
 
     def run(self, tasks: list[Task], maps: dict[str, GridMap]):
         """Yield (task index, positions (T+1, N, 2) float32, info) as episodes finish (not in task order)."""

@@ -44,6 +44,16 @@ def violations(paths: np.ndarray, padded: np.ndarray, others: np.ndarray | None,
     return obs + inter + disc
 
 
+def held_hits(paths: np.ndarray, held: np.ndarray, d_coll: float) -> np.ndarray:
+    """(G,) close encounters of candidate plans paths (G, m, P, 2) with robots held where they stand, held (k, 2):
+    the robots of later clusters (clustered rollout), which hold there when their own re-plan finds no clean
+    candidate, so the moves executed before their re-plan must keep clear of them."""
+    if len(held) == 0:
+        return np.zeros(len(paths), int)
+    d = np.linalg.norm(paths[:, :, :, None] - held[None, None, None], axis=-1)  # (G, m, P, k)
+    return (d < d_coll).sum(axis=(1, 2, 3))
+
+
 def geodesic_field(known_occupancy: np.ndarray, goal: np.ndarray, graph: GridGraph | None = None) -> np.ndarray:
     """(H, W) octile distance to the goal's cell over the known free cells (inf on obstacles / unreachable);
     `graph`: the free-cell graph of known_occupancy when one is already built (GridMap.free_graph)."""
