@@ -48,6 +48,8 @@ def parser() -> argparse.ArgumentParser:
     rk.add_argument("--guide-scale", type=float, help="roken+guided: scale of the guidance descent (default 1)")
     rk.add_argument("--guide-steps", type=int,
                     help="roken+guided: the last DDIM steps that are guided (default plan.guide_steps)")
+    rk.add_argument("--subgoal", type=float, help="metres of free-space path the leader's sub-goal lies ahead on the "
+                                                  "known map (0 = the task's goal, default; roken/plan/subgoal.py)")
     rk.add_argument("--sampler", choices=["ddim", "ddpm"])
     rk.add_argument("--steps", type=int, help="DDIM steps (default 10)")
     rk.add_argument("--device", help="auto (cuda where available, default), cpu or cuda")
@@ -59,7 +61,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 PLAN_FLAGS = ("checkpoint", "which", "replan_every", "cluster_size", "sensing_range", "accumulate", "candidates",
-              "select", "sampler", "steps", "device", "dtype", "guide_scale", "guide_steps")
+              "select", "sampler", "steps", "device", "dtype", "guide_scale", "guide_steps", "subgoal")
 
 
 def overrides(args) -> list[str]:

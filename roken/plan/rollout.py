@@ -29,6 +29,7 @@ from .clusters import Cluster, overlapping_clusters
 from .guidance import Guide, finite_geodesic, known_fields
 from .planner import SAMPLERS, RokenPlanner
 from .select import SELECTIONS, choose, geodesic_field, held_hits, progress, violations
+from .subgoal import subgoal
 
 
 @dataclass
@@ -51,6 +52,9 @@ class PlanConfig:
     batch_size: int = 64  # episodes stepped together
     seed: int = 0
     noise_scale: float = 1.0  # initial noise std of the sampler (< 1: lower temperature)
+    subgoal: float = 0.0  # > 0: the leader's goal is a sub-goal this many metres of path ahead (subgoal.py)
+    subgoal_sight: bool = True  # the sub-goal is in the leader's sight (False: the path point at plan.subgoal)
+    subgoal_after_hold: int = 0  # > 0: the sub-goal only for this many re-plans after a hold (0 = at every one)
     noise: str = "fresh"  # fresh: new noise at every re-plan | episode: one noise draw per episode, reused at each
     # constraint-guided sampling (roken+guided rows; roken/plan/guidance.py): the cost's weights and its descent
     guide: bool = False  # set by the row name roken+guided[+safe]
@@ -86,6 +90,9 @@ def check(pc: PlanConfig, planner: RokenPlanner | None = None, team_size: int | 
         raise ValueError(f"--replan-every {pc.replan_every}: must be >= 1")
     if not pc.noise_scale > 0:
         raise ValueError(f"plan.noise_scale={pc.noise_scale}: must be > 0 (1 = the model's own distribution)")
+    if pc.subgoal < 0 or pc.subgoal_after_hold < 0:
+        raise ValueError(f"plan.subgoal={pc.subgoal}, plan.subgoal_after_hold={pc.subgoal_after_hold}: >= 0 (metres "
+                         f"of path to look ahead, re-plans after a hold; 0 = the task's goal, at every re-plan)")
     if pc.verify_moves < 0:
         raise ValueError(f"plan.verify_moves={pc.verify_moves}: 0 (every planned move) or the moves to verify")
     if pc.guide and (pc.sampler != "ddim" or pc.guide_steps < 1 or pc.guide_iters < 1 or pc.guide_scale < 0
@@ -141,13 +148,14 @@ class RokenRollout:
         planned = np.full((len(slots), N, H, 2), np.nan, np.float32)
         done = np.zeros((len(slots), N), bool)
         cl = [self.clusters(s.q, s.task.leader) for s in slots]
+        goals = [s.goal() for s in slots]
         for stage in range(max(len(c) for c in cl)):
             rows = [b for b in range(len(slots)) if stage < len(cl[b])]
             T = max(len(cl[b][stage].members) for b in rows)
             conds = []
             for b in rows:
                 s, c = slots[b], cl[b][stage]
-                goal = s.task.goal if c.leader >= 0 else None
+                goal = goals[b] if c.leader >= 0 else None
                 conds.append(build_condition(s.gm.occupancy, s.q[c.members], c.leader, goal, self.planner.cfg,
                                              given=planned[b][c.members], fixed=c.fixed, seen=s.seen, tokens=T))
             outside = self.outside([slots[b] for b in rows], [cl[b][stage] for b in rows],
@@ -185,6 +193,7 @@ class RokenRollout:
                     if viol[g] > 0 and pc.fallback == "hold":
                         cand = np.broadcast_to(s.q[c.members][None, :, None], cand.shape)
                         s.holds += 1
+                        s.subgoal_left = pc.subgoal_after_hold
                 gen = c.members[~c.fixed]
                 planned[b][gen] = cand[g][~c.fixed]
                 done[b][gen] = True
@@ -270,9 +279,10 @@ class _Slot:
         self.plan_steps: list[int] = []
         self.reached = False
         self.holds = 0  # re-plans where no candidate was clean and the team held position
+        self.subgoal_left = 0  # re-plans left toward the sub-goal (plan.subgoal_after_hold)
         self.padded_known = gm.padded
         self.geodesic = None
-        if ro.pc.select == "geodesic" and not ro.pc.sensing_range:
+        if (ro.pc.select == "geodesic" or ro.pc.subgoal > 0) and not ro.pc.sensing_range:
             self.geodesic = geodesic_field(gm.occupancy, task.goal, gm.free_graph)
         self.fields = known_fields(gm.occupancy, task.goal, gm.free_graph) if ro.pc.guide else None
 
@@ -289,6 +299,15 @@ class _Slot:
         graph = self.gm.free_graph if self.seen is None else None
         return finite_geodesic(known, self.q[self.task.leader], graph)
 
+    def goal(self) -> np.ndarray:
+        """The leader's goal for this re-plan: the task's, or (plan.subgoal) a sub-goal along the free-space path."""
+        pc = self.ro.pc
+        if pc.subgoal <= 0 or (pc.subgoal_after_hold > 0 and self.subgoal_left <= 0):
+            return np.asarray(self.task.goal, np.float64)
+        self.subgoal_left -= 1
+        return subgoal(self.geodesic, self.padded_known, self.q[self.task.leader], self.task.goal, pc.subgoal,
+                       sight=pc.subgoal_sight)
+
     @property
     def finished(self) -> bool:
         return self.reached or len(self.hist) - 1 >= self.limit
@@ -302,10 +321,10 @@ class _Slot:
         self.seen = now if self.seen is None or not pc.accumulate else self.seen | now
         if pc.guide:  # the guidance sees the known map only
             self.fields = known_fields(known_occupancy(self.gm.occupancy, self.seen), self.task.goal)
-        if pc.select != "none":
+        if pc.select != "none" or pc.subgoal > 0:
             known = known_occupancy(self.gm.occupancy, self.seen)
             self.padded_known = pad_for_clearance(known)
-            if pc.select == "geodesic":
+            if pc.select == "geodesic" or pc.subgoal > 0:
                 self.geodesic = geodesic_field(known, self.task.goal)
 
     def execute(self, plan: np.ndarray) -> None:
