@@ -103,3 +103,22 @@ def test_a_round_writes_valid_relabelled_shards_and_resumes_exactly(expert_datas
     assert again["rounds"] == b["rounds"]
     with pytest.raises(ValueError, match="dagger.share"):
         _run(load_config(None, TINY + ["dagger.share=0.25"]), model, expert_dataset, tmp_path / "b")
+
+
+def test_only_failed_rollouts_are_relabelled_when_asked_and_the_planner_must_be_a_roken_row():
+    from roken.dagger.relabel import DaggerConfig, check, relabel
+
+    tc, gm = TaskConfig(), generate_map(MapConfig(), "train", 3)
+    task = sample_task(gm, 2, tc, np.random.default_rng(1))
+    P = np.repeat(task.starts[None], 61, axis=0)  # a team that holds for 60 steps (a stall)
+    eps = [{"map_id": gm.map_id, "positions": P, "goal": task.goal, "leader": task.leader, "episode_id": f"e{i}",
+            "seed": i, "success": i == 0} for i in range(2)]
+    dc = DaggerConfig(state_every=20, max_states=2)
+    every, _ = relabel(eps, {gm.map_id: gm}, 0, dc, tc, ExpertConfig())
+    failed, stats = relabel(eps, {gm.map_id: gm}, 0, DaggerConfig(state_every=20, max_states=2, only_failed=True),
+                            tc, ExpertConfig())
+    assert len(every) == 4 and len(failed) == stats["states"] == 2
+    assert all("-e1-" in r["episode_id"] for r in failed)
+    check(DaggerConfig(planner="roken+guided+geodesic"))
+    with pytest.raises(ValueError, match="dagger.planner"):
+        check(DaggerConfig(planner="laplacian"))

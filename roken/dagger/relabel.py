@@ -31,6 +31,11 @@ class DaggerConfig:
     steps_per_round: int = 1000  # training steps per round on the mix
     share: float = 0.5  # share of training samples drawn from the relabelled episodes of all rounds so far
     sample_steps: int = 0  # training chunks of a relabelled episode start in its first this many steps (0 = anywhere)
+    # The planner of the rollouts: plain `roken` (the policy's own distribution, the classic DAgger) or a
+    # deployable row (`roken+guided+geodesic`, candidates from plan.candidates), whose episodes reach the later
+    # states of a task - the stalls its failures end in - that plain rollouts never get to.
+    planner: str = "roken"
+    only_failed: bool = False  # relabel only the states of rollouts that failed (a deployable row succeeds often)
     seed: int = 0
 
 
@@ -40,6 +45,9 @@ def check(dc: DaggerConfig) -> None:
     for k in ("rounds", "episodes", "robots", "state_every", "max_states", "steps_per_round"):
         if getattr(dc, k) < 1:
             raise ValueError(f"dagger.{k} must be >= 1, got {getattr(dc, k)}")
+    if dc.planner.split("+")[0] != "roken":
+        raise ValueError(f"dagger.planner={dc.planner!r}: the rollouts are the learner's, a `roken` row "
+                         f"(roken, roken+guided, roken+guided+geodesic, ...)")
     if not 0 < dc.share < 1:
         raise ValueError(f"dagger.share={dc.share}: the relabelled episodes' share of training samples must be in "
                          f"(0, 1) (the expert dataset keeps the rest)")
@@ -78,6 +86,8 @@ def relabel(episodes: list[dict], maps: dict[str, GridMap], round_index: int, dc
     tasks, ids = [], []
     refused = 0
     for ep in episodes:
+        if dc.only_failed and bool(ep["success"]):
+            continue
         gm = maps[ep["map_id"]]
         P = np.asarray(ep["positions"], np.float64)
         goal, leader = np.asarray(ep["goal"], np.float64), int(ep["leader"])

@@ -58,9 +58,10 @@ def check_run(out: str | Path, cfg, checkpoint: str, data: str, val_data: str | 
 
 
 def rollout(cfg, dc: DaggerConfig, model: str, r: int, out: Path, runner) -> dict:
-    """The current model in closed loop on this round's `train` tasks (plan section as configured)."""
+    """The current model in closed loop on this round's `train` tasks (`dagger.planner`, plan section as
+    configured)."""
     c = copy.deepcopy(cfg)
-    c.eval = EvalConfig(planner="roken", robots=[dc.robots], episodes=dc.episodes, maps="train",
+    c.eval = EvalConfig(planner=dc.planner, robots=[dc.robots], episodes=dc.episodes, maps="train",
                         seed=1000 * (dc.seed + 1) + r, unit_episodes=16)
     c.plan.checkpoint, c.plan.which = model, "latest"
     return evaluate(c, out, runner)

@@ -64,8 +64,9 @@ def model_card(cfg: dict, src: Path, params: int, notes: str) -> str:
     code = cfg.get("code_version", {})
     keys = ("condition_prob", "subteam_prob", "final_goal_prob", "team_size_weights")
     samples = json.dumps({k: cfg["samples"][k] for k in keys})
-    data = (f"`{d.get('location')}` (fingerprint {d.get('fingerprint')}, {d.get('episodes')} episodes on "
-            f"{d.get('maps')} maps)")
+    parts = d.get("datasets") or [d]  # a data mix (DAgger, --data A,B) lists each of its datasets
+    data = "; ".join(f"`{x.get('location')}` (fingerprint {x.get('fingerprint')}, {x.get('episodes')} episodes on "
+                     f"{x.get('maps')} maps)" for x in parts)
     return f"""# Roken DiT checkpoint
 
 - Architecture: width {m['width']}, {m['depth']} decoder layers, {m['heads']} heads, MLP {m['mlp_hidden']},
