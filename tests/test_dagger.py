@@ -122,3 +122,12 @@ def test_only_failed_rollouts_are_relabelled_when_asked_and_the_planner_must_be_
     check(DaggerConfig(planner="roken+guided+geodesic"))
     with pytest.raises(ValueError, match="dagger.planner"):
         check(DaggerConfig(planner="laplacian"))
+
+
+@pytest.mark.parametrize("recipe", sorted(p.name for p in (ROOT / "configs" / "dagger").glob("*.yaml")))
+def test_every_dagger_recipe_loads_and_passes_the_checks(recipe):
+    from roken.dagger.relabel import check
+
+    cfg = load_config(str(ROOT / "configs" / "dagger" / recipe), [])
+    check(cfg.dagger)
+    assert cfg.dagger.planner.startswith("roken")
