@@ -66,12 +66,14 @@ def test_sgg_keeps_the_constraints_whenever_its_search_found_a_feasible_topology
 
 def test_gnn_scorer_trains_on_simulator_labels(tmp_path):
     out = tmp_path / "gnn"
-    r = subprocess.run([sys.executable, "-m", "roken", "train-gnn", "--out", str(out), "--tasks", "8", "--states",
-                        "3", "--steps", "1000"], capture_output=True, text=True, timeout=600)
+    r = subprocess.run([sys.executable, "-m", "roken", "train-gnn", "--out", str(out), "--tasks", "24", "--states",
+                        "4", "--steps", "600"], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     s = json.loads((out / "summary.json").read_text())
     assert 0.05 < s["good_fraction"] < 0.95  # both kinds of candidate graph are in the data
-    assert s["heldout_accuracy"] > 0.9  # and the scorer tells them apart on other maps' graphs
+    # and the scorer tells them apart on other maps' graphs, well above always saying "bad" (~0.82 here; with 8
+    # tasks it over-fitted: train 1.000, held-out 0.877, below that rate)
+    assert s["heldout_accuracy"] > max(0.93, 1 - s["good_fraction"] + 0.05)
     from roken.expert.gnn import load_scorer
 
     load_scorer(str(out))
