@@ -107,7 +107,8 @@ def main(argv=None) -> int:
         out = local_run_folder(args.out, "pretraining", "run folder (a new or an existing run)")
         args.data, args.val_data = absolute(args.data), absolute(args.val_data)
         if args.init:
-            args.init = str(ckpt.find(args.init).resolve())  # fails here if bad, before any write (absolute: Ray workers run elsewhere)
+            # a bad checkpoint fails here, before any write; absolute, since Ray workers run elsewhere
+            args.init = str(ckpt.find(args.init).resolve())
         for d, role in ((args.data, "--data"), (args.val_data, "--val-data")):
             if d:
                 check_dataset(d, role)

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..data.store import episode_record
+from ..eval.harness import PLANNERS
 from ..expert.laplacian import ExpertConfig, LaplacianExpert
 from ..world.geometry import clearance
 from ..world.graph import connected
@@ -45,9 +46,9 @@ def check(dc: DaggerConfig) -> None:
     for k in ("rounds", "episodes", "robots", "state_every", "max_states", "steps_per_round"):
         if getattr(dc, k) < 1:
             raise ValueError(f"dagger.{k} must be >= 1, got {getattr(dc, k)}")
-    if dc.planner.split("+")[0] != "roken":
-        raise ValueError(f"dagger.planner={dc.planner!r}: the rollouts are the learner's, a `roken` row "
-                         f"(roken, roken+guided, roken+guided+geodesic, ...)")
+    rows = [p for p in PLANNERS if p.startswith("roken")]  # the harness's rows that roll the learner out
+    if dc.planner not in rows:
+        raise ValueError(f"dagger.planner={dc.planner!r}: the rollouts are the learner's, one of {', '.join(rows)}")
     if not 0 < dc.share < 1:
         raise ValueError(f"dagger.share={dc.share}: the relabelled episodes' share of training samples must be in "
                          f"(0, 1) (the expert dataset keeps the rest)")
