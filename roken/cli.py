@@ -1,5 +1,5 @@
 """`roken` command line: `roken plot RUN_DIR --episode ID --out FILE.png`, `roken animate RUN_DIR --index 0
---out FILE.gif`, `roken validate RUN_DIR`, `roken export RUN_OR_CHECKPOINT OUT`, `roken quickstart`."""
+--out FILE.gif`, `roken validate RUN_DIR`, `roken export RUN_OR_CHECKPOINT OUT`, `roken compare EVAL_A EVAL_B`, `roken quickstart`."""
 from __future__ import annotations
 
 import argparse
@@ -86,6 +86,16 @@ def cmd_export(args) -> int:
     return 0
 
 
+def cmd_compare(args) -> int:
+    from .eval.compare import compare, format_table
+
+    planners = [p for p in (args.planner or "").split(",") if p] or None
+    rows = compare(args.a, args.b, planners, args.against, args.metric)
+    print(format_table(rows, args.metric))
+    print("only A / only B: tasks one solves and the other does not; p: exact two-sided sign test on them")
+    return 0
+
+
 def cmd_train_gnn(args) -> int:
     from .config import load_config
     from .expert.gnn import train_scorer
@@ -144,6 +154,13 @@ def main(argv: list[str] | None = None) -> int:
     x.add_argument("--which", choices=("latest", "best"), default="latest", help="checkpoint of a run folder")
     x.add_argument("--notes", help="a Markdown file appended to the model card")
     x.set_defaults(fn=cmd_export)
+    c = sub.add_parser("compare", help="paired comparison of two evaluations on the same tasks (sign test)")
+    c.add_argument("a", help="evaluation folder A (episodes/ written by pipelines/evaluate.py)")
+    c.add_argument("b", nargs="?", help="evaluation folder B (default: A, with --against)")
+    c.add_argument("--planner", help="planners of A to compare, comma-separated (default: all in both)")
+    c.add_argument("--against", help="the planner of B each one is compared with (default: the same planner)")
+    c.add_argument("--metric", default="success", help="success or reach")
+    c.set_defaults(fn=cmd_compare)
     g = sub.add_parser("train-gnn", help="train the GNN baseline's graph scorer on simulator labels (CPU, minutes)")
     g.add_argument("--out", default="models/gnn-scorer", help="folder for model.safetensors, config.json")
     g.add_argument("--tasks", type=int, default=256, help="expert episodes on train maps the graphs come from")

@@ -162,10 +162,13 @@ def episode_record(episode_id: str, planner: str, task: Task, gm: GridMap, posit
     }
 
 
-def _read(path: str | Path, kind: str, schema: pa.Schema) -> pa.Table:
+def _read(path: str | Path, kind: str, schema: pa.Schema, columns: list[str] | None = None) -> pa.Table:
+    """The validated table; with `columns`, only those are read (and checked), e.g. metrics without the plans."""
+    if columns is not None:
+        schema = pa.schema([f for f in schema if f.name in columns])
     try:
         filesystem, p = fs.resolve(path)
-        table = pq.read_table(p, filesystem=filesystem)
+        table = pq.read_table(p, filesystem=filesystem, columns=columns)
     except (pa.ArrowInvalid, OSError) as e:
         raise StoreError(f"{path}: not a readable Parquet file ({e}); delete it and re-run to regenerate it") from None
     meta = table.schema.metadata or {}
@@ -213,6 +216,12 @@ def read_episodes(path: str | Path) -> list[dict]:
         r["positions"] = pos.reshape(T + 1, N, 2)
         r["goal"] = np.asarray(r["goal"], dtype=np.float32)
     return rows
+
+
+def read_episode_columns(path: str | Path, columns: list[str]) -> pa.Table:
+    """Some EPISODES_SCHEMA columns of an episodes file, checked like read_episodes (cheap: no trajectories
+    unless asked for)."""
+    return _read(path, "episodes", EPISODES_SCHEMA, columns)
 
 
 def read_run(folder: str | Path) -> tuple[dict[str, GridMap], list[dict]]:
