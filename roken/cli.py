@@ -159,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("b", nargs="?", help="evaluation folder B (default: A, with --against)")
     c.add_argument("--planner", help="planners of A to compare, comma-separated (default: all in both)")
     c.add_argument("--against", help="the planner of B each one is compared with (default: the same planner)")
-    c.add_argument("--metric", default="success", help="success or reach")
+    c.add_argument("--metric", default="success", choices=("success", "reach"), help="the per-task outcome compared")
     c.set_defaults(fn=cmd_compare)
     g = sub.add_parser("train-gnn", help="train the GNN baseline's graph scorer on simulator labels (CPU, minutes)")
     g.add_argument("--out", default="models/gnn-scorer", help="folder for model.safetensors, config.json")

@@ -76,10 +76,10 @@ def compare(run_a: str | Path, run_b: str | Path | None = None, planners: list[s
         raise ValueError(f"--metric {metric}: use one of {', '.join(METRICS)}")
     if against and not planners:
         raise ValueError("--against needs --planner (the planner of A to compare with it)")
-    files_a = episode_files(run_a)
-    files_b = files_a if run_b is None or Path(run_b) == Path(run_a) else episode_files(run_b)
     if run_b is None and not against:
         raise ValueError("one folder compares two of its planners: add --planner P --against Q, or a second folder")
+    files_a = episode_files(run_a)
+    files_b = files_a if run_b is None or str(run_b) == str(run_a) else episode_files(run_b)
     have_a = sorted({p for p, _ in files_a})
     for p in planners or []:
         if p not in have_a:
