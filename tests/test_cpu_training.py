@@ -166,3 +166,45 @@ def test_ablation_writes_both_files_and_resume_skips_finished(expert_dataset, tm
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0 and "1 finished earlier" in r.stderr, r.stderr[-2000:]
     assert (tmp_path / "abl" / "variants" / "a" / "result.json").read_text() == before
+
+
+def test_separation_term_pushes_close_generated_robots_apart_and_spares_given_ones(expert_dataset):
+    """loss.sep on a hand-made chunk: a close pair is penalised and pushed apart, given robots never move."""
+    from roken.model.losses import _sep_term
+    cfg = load_config(None, TINY + ["loss.sdf_mode=stopgrad", "diffusion.clip_sample=0", "loss.sep=1"])
+    sched = NoiseSchedule(cfg.diffusion)
+    H = batch_of(expert_dataset, 1, cfg.samples)["chunk"].shape[2]
+    n = 4
+    real = torch.ones(1, n)
+    start = torch.tensor([[[50.0 + 20 * i, 50.0] for i in range(n)]])
+    start[0, 1] = torch.tensor([51.0, 50.0])  # robots 0 and 1 start 1 m apart, the others 20 m from every robot
+    b = {"start": start}
+    x0 = torch.zeros(1, n, H, 2)  # every robot stays where it is
+    k = torch.zeros(1, dtype=torch.long)
+    xk = sched.q_sample(x0, k, torch.zeros_like(x0))
+
+    def term(fixed):
+        eps_hat = torch.zeros_like(x0, requires_grad=True)
+        out = {"eps": eps_hat}
+        val = _sep_term(sched, b, cfg.loss, cfg.samples, out, x0, xk, k, fixed, real - fixed, real, 1)
+        val.backward()
+        return val, eps_hat.grad[0]
+
+    val, g = term(torch.zeros_like(real))
+    assert val > 0
+    # descending the penalty moves robot 0 toward -x and robot 1 toward +x (eps_hat enters x0_hat with a minus sign)
+    step = -g
+    assert (sched.predict_x0(xk, k, step[None]) - x0)[0, 0, :, 0].sum() < 0
+    assert (sched.predict_x0(xk, k, step[None]) - x0)[0, 1, :, 0].sum() > 0
+    assert g[2:].abs().sum() == 0  # robots far from every other get no push
+    fixed = torch.zeros_like(real)
+    fixed[0, 0] = 1  # robot 0 given: its pair still counts, but only robot 1 moves
+    val1, g1 = term(fixed)
+    assert val1 > 0 and g1[0].abs().sum() == 0 and g1[1].abs().sum() > 0
+    fixed[0, 1] = 1  # both given: nothing to learn from that pair
+    val2, _ = term(fixed)
+    assert val2 == 0
+    # a team whose every pair is beyond loss.sep_distance has no penalty at all
+    b["start"][0, 1] = torch.tensor([55.0, 50.0])
+    val3, g3 = term(torch.zeros_like(real))
+    assert val3 == 0 and g3.abs().sum() == 0

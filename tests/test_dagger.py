@@ -131,3 +131,25 @@ def test_every_dagger_recipe_loads_and_passes_the_checks(recipe):
     cfg = load_config(str(ROOT / "configs" / "dagger" / recipe), [])
     check(cfg.dagger)
     assert cfg.dagger.planner.startswith("roken")
+
+
+def test_successful_rollouts_are_kept_as_executed_with_keep_success():
+    from roken.dagger.relabel import DaggerConfig, relabel
+
+    tc, gm = TaskConfig(), generate_map(MapConfig(), "train", 3)
+    task = sample_task(gm, 2, tc, np.random.default_rng(1))
+    (_, e), = list(LaplacianExpert(ExpertConfig(), tc).run([task], {gm.map_id: gm}))
+    assert e.reached
+    held = np.repeat(task.starts[None], 61, axis=0)
+    eps = [{"map_id": gm.map_id, "positions": p, "goal": task.goal, "leader": task.leader, "episode_id": f"e{i}",
+            "num_robots": 2, "seed": i, "success": ok} for i, (p, ok) in enumerate([(e.positions, True),
+                                                                                  (held, False)])]
+    dc = DaggerConfig(state_every=20, max_states=2, only_failed=True, keep_success=True)
+    rows, stats = relabel(eps, {gm.map_id: gm}, 3, dc, tc, ExpertConfig())
+    own = [r for r in rows if r["source"] == "self"]
+    assert stats["self"] == len(own) == 1 and len(rows) == stats["states"] + 1
+    assert own[0]["success"] and own[0]["round"] == 3 and own[0]["episode_id"] == "self-r03-e0"
+    np.testing.assert_allclose(own[0]["positions"], e.positions)  # as executed, not relabelled
+    rows, stats = relabel(eps, {gm.map_id: gm}, 3, DaggerConfig(state_every=20, max_states=2, only_failed=True),
+                          tc, ExpertConfig())
+    assert stats["self"] == 0 and all(r["source"] == "dagger" for r in rows)

@@ -194,6 +194,22 @@ def test_safe_selection_prefers_clean_candidates():
     assert choose(hf, np.array([20.0, 30.0, 10.0]), vf - hf) == int(np.argmin(np.where(hf == 0, vf - hf, 1e9)))
 
 
+def test_team_progress_ranks_a_plan_that_brings_the_followers_along():
+    from roken.plan.select import geodesic_field, progress, team_progress
+
+    occ = np.zeros((40, 40), np.uint8)
+    occ[10:30, 20] = 1  # a wall between the followers and the goal, open above and below
+    goal = np.array([35.0, 20.0])
+    field = geodesic_field(occ, goal)
+    starts = np.array([[10.0, 20.0], [12.0, 18.0]])  # two followers behind the wall
+    ends = np.stack([starts + [0.0, -5.0], starts, starts - [3.0, 0.0]])  # round the wall / hold / backwards
+    free = team_progress(starts, ends, goal, field)
+    assert free[0] > 0 and free[1] == 0 and free[2] < 0
+    np.testing.assert_allclose(free, np.mean([progress(starts[i], ends[:, i], goal, field) for i in range(2)], 0))
+    # straight-line progress calls the move round the wall a loss (it moves away from the goal's row)
+    assert team_progress(starts, ends, goal)[0] < 0
+
+
 def test_evaluate_refuses_a_team_larger_than_the_model_up_front(tmp_path):
     r = subprocess.run([sys.executable, str(ROOT / "pipelines" / "evaluate.py"), "--planner", "roken",
                         "--checkpoint", str(ROOT / "models" / "roken-small-mixed"), "--robots", "12",

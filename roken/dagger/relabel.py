@@ -37,6 +37,11 @@ class DaggerConfig:
     # states of a task - the stalls its failures end in - that plain rollouts never get to.
     planner: str = "roken"
     only_failed: bool = False  # relabel only the states of rollouts that failed (a deployable row succeeds often)
+    # Self-imitation (expert iteration, as in ReST / RAFT; beyond classic DAgger): the rollouts that succeeded are
+    # kept as they were executed, source "self". A deployable row's successes are clean, connected trajectories
+    # from the learner's own state distribution, drawn from a mode the model can already represent; training on
+    # them distils the guidance and the verified selection into the model's own samples.
+    keep_success: bool = False
     seed: int = 0
 
 
@@ -107,7 +112,19 @@ def relabel(episodes: list[dict], maps: dict[str, GridMap], round_index: int, dc
                                      tasks[i].seed) | {"source": "dagger", "round": round_index,
                                                                    "sample_until": dc.sample_steps}
     done = [r for r in rows if r is not None]
+    kept = [self_record(ep, maps[ep["map_id"]], round_index, dc, tc) for ep in episodes
+            if dc.keep_success and bool(ep["success"])]
     stats = {"rollouts": len(episodes), "rollout_success": float(np.mean([bool(e["success"]) for e in episodes]))
              if episodes else 0.0, "states": len(done), "refused": refused,
-             "expert_success": float(np.mean([r["success"] for r in done])) if done else 0.0}
-    return done, stats
+             "expert_success": float(np.mean([r["success"] for r in done])) if done else 0.0, "self": len(kept)}
+    return done + kept, stats
+
+
+def self_record(ep: dict, gm: GridMap, round_index: int, dc: DaggerConfig, tc: TaskConfig) -> dict:
+    """A successful rollout as executed, as an episode of the dataset schema (source "self")."""
+    n = int(ep["num_robots"])
+    P = np.asarray(ep["positions"], np.float64).reshape(-1, n, 2)
+    task = Task(ep["map_id"], P[0].copy(), np.asarray(ep["goal"], np.float64), int(ep["leader"]),
+                seed=int(ep.get("seed", 0)))
+    return episode_record(f"self-r{round_index:02d}-{ep['episode_id']}", dc.planner, task, gm, P, tc, task.seed) | {
+        "source": "self", "round": round_index, "sample_until": 0}

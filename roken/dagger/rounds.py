@@ -4,7 +4,8 @@ Round r, in RUN/round-rr/:
   rollouts/  the current model in closed loop on `dagger.episodes` new `train`-map tasks (the evaluation
              harness: Ray actors or in-process, episodes and metrics.json as any evaluation);
   data/      the expert's continuations from the visited states (roken.dagger.relabel), a dataset folder
-             (maps/, episodes/relabel.parquet with `source` and `round`, manifest.json written last);
+             (maps/, episodes/relabel.parquet with `source` and `round`, manifest.json written last), and
+             with `dagger.keep_success` the successful rollouts as executed (source "self");
   train/     a pretraining run on the expert dataset mixed with every round's relabelled episodes so far
              (`dagger.share` of the samples), started from the previous round's model (weights, EMA,
              optimizer), `dagger.steps_per_round` steps, closed-loop validation on the `val` tasks at its end;
@@ -103,7 +104,7 @@ def mix(data: str, out: Path, r: int, share: float) -> tuple[list[str], list[flo
     relabelled share split over the rounds in proportion to their successful episodes)."""
     rounds = [round_dir(out, k) / "data" for k in range(r + 1)]
     stats = [read_json(d / "manifest.json")["stats"] for d in rounds]
-    kept = [st["states"] * st["expert_success"] for st in stats]
+    kept = [st["states"] * st["expert_success"] + st.get("self", 0) for st in stats]
     total = sum(kept)
     if total <= 0:
         return [data], [1.0]
@@ -156,7 +157,8 @@ def run_dagger(cfg, checkpoint: str, data: str, out: str | Path, make_runner, tr
         stats = relabel_round(cfg, dc, r, d / "rollouts", d / "data")
         log(f"[dagger] round {r}: rollout success {ro['full_success']:.3f} (reach {ro['reach']:.3f}); relabelled "
             f"{stats['states']} states (refused {stats['refused']}), expert success from them "
-            f"{stats['expert_success']:.3f}")
+            f"{stats['expert_success']:.3f}" + (f"; {stats['self']} successful rollouts kept as executed"
+                                           if stats.get("self") else ""))
         datasets, shares = mix(data, out, r, dc.share)
         t_train = train(round_config(cfg, model), datasets, shares, str(d / "train"), val_data, model)
         val = t_train.get("validation", {})

@@ -62,6 +62,15 @@ class LossConfig:
     # others; the weights are normalised to mean 1 over the chunk, so 1.0 is the paper's uniform mean
     executed_weight: float = 1.0
     executed_moves: int = 2
+    # Beyond the paper: a separation term on the predicted clean chunk, [ReLU(sep_distance - d_ij) / sep_distance]^2
+    # over robot pairs (at least one generated) at every chunk point, weighted by abar_k like L_sdf and built from
+    # the same points (loss.sdf_mode stopgrad: each point moves only its own move). Plain Roken's episodes
+    # come to robot-robot contact (177 of 200 `val` episodes, median first contact at step 23), which the
+    # paper's losses never penalise; the expert keeps pairs >= 3.1 m (10th percentile of episode minima), so a
+    # hinge at 2.5 m (d_coll_min + 0.5) seldom acts on demonstrations. Measured: it does not lower the contacts
+    # (README "Two levers screened"), off by default.
+    sep: float = 0.0  # weight; 0 = off (the paper's loss)
+    sep_distance: float = 2.5  # metres
 
     def __post_init__(self):
         if self.sdf_mode in (False, "False", "false", "no"):  # YAML reads a bare `off` as false
@@ -82,7 +91,8 @@ def check(cfg: LossConfig) -> None:
         raise ValueError(f"loss.sdf_mode must be one of {', '.join(SDF_MODES)}, got {cfg.sdf_mode!r}")
     if cfg.traj_reduction not in ("mean", "sum"):
         raise ValueError(f"loss.traj_reduction must be 'mean' or 'sum', got {cfg.traj_reduction!r}")
-    bad = [k for k in ("traj", "wp", "occ", "sdf", "sdf_threshold", "executed_weight", "executed_moves")
+    bad = [k for k in ("traj", "wp", "occ", "sdf", "sdf_threshold", "executed_weight", "executed_moves", "sep",
+                       "sep_distance")
            if getattr(cfg, k) < 0]
     if bad:
         raise ValueError(f"loss.{bad[0]} must be >= 0, got {getattr(cfg, bad[0])}")
@@ -154,8 +164,10 @@ def pretraining_loss(model: RokenDiT, sched: NoiseSchedule, batch: dict, loss_cf
         terms["occ"] = _masked_mean(bce, real1)
     if loss_cfg.sdf > 0:
         terms["sdf"] = _sdf_term(sched, batch, loss_cfg, sample_cfg, out, x0, xk, k, fixed, gen, K)
+    if loss_cfg.sep > 0:
+        terms["sep"] = _sep_term(sched, batch, loss_cfg, sample_cfg, out, x0, xk, k, fixed, gen, real, K)
     sdf_w = loss_cfg.sdf * (1.0 if step is None else loss_cfg.sdf_scale(step))
-    weights = {"traj": loss_cfg.traj, "wp": loss_cfg.wp, "occ": loss_cfg.occ, "sdf": sdf_w}
+    weights = {"traj": loss_cfg.traj, "wp": loss_cfg.wp, "occ": loss_cfg.occ, "sdf": sdf_w, "sep": loss_cfg.sep}
     loss = sum(weights[name] * v for name, v in terms.items())
     metrics = {f"losses/{name}": v.detach() for name, v in terms.items()}  # tensors: no device sync here
     metrics["losses/total"] = loss.detach()
@@ -175,6 +187,16 @@ def _sdf_term(sched, batch, loss_cfg, sample_cfg, out, x0, xk, k, fixed, gen, K)
     wp_sum = loss_cfg.sdf_wp * (pen_wp.sum(-1) * real1).sum()
     if loss_cfg.sdf_mode == "off" or loss_cfg.sdf_traj == 0:
         return wp_sum / (real1.sum() * Kw).clamp(min=1)
+    traj, w = _predicted_points(sched, loss_cfg, sample_cfg, out, x0, xk, k, fixed, start)
+    # each sample's K draws read its one SDF (rows are sample-major): no K copies of the (S, S) field
+    d = sdf_at(batch["sdf"], traj.view(batch["sdf"].shape[0], -1, 2)).view(traj.shape[:-1])  # (BK, R, H)
+    pen_traj = w * (F.relu(th - d) / norm) ** 2  # (BK, R, H)
+    traj_sum = loss_cfg.sdf_traj * (pen_traj.sum(-1) * gen).sum() / K  # mean over the draws
+    return (traj_sum + wp_sum) / (gen.sum() / K * H + real1.sum() * Kw).clamp(min=1)
+
+
+def _predicted_points(sched, loss_cfg, sample_cfg, out, x0, xk, k, fixed, start):
+    """The predicted clean chunk as points in metres (BK, R, H, 2), per loss.sdf_mode, and its weight (BK, 1, 1)."""
     x0_hat = torch.where(fixed.bool()[:, :, None, None], x0, sched.predict_x0(xk, k, out["eps"]))
     if loss_cfg.sdf_mode == "stopgrad" and sample_cfg.representation == "relative":
         # point h = start + (moves 0..h-1, no gradient) + move h: a point's penalty moves only its own move
@@ -188,8 +210,19 @@ def _sdf_term(sched, batch, loss_cfg, sample_cfg, out, x0, xk, k, fixed, gen, K)
     w = sched.abar[k][:, None, None]
     if loss_cfg.sdf_mode == "low_noise":
         w = w * (k < loss_cfg.sdf_max_k).float()[:, None, None]
-    # each sample's K draws read its one SDF (rows are sample-major): no K copies of the (S, S) field
-    d = sdf_at(batch["sdf"], traj.view(batch["sdf"].shape[0], -1, 2)).view(traj.shape[:-1])  # (BK, R, H)
-    pen_traj = w * (F.relu(th - d) / norm) ** 2  # (BK, R, H)
-    traj_sum = loss_cfg.sdf_traj * (pen_traj.sum(-1) * gen).sum() / K  # mean over the draws
-    return (traj_sum + wp_sum) / (gen.sum() / K * H + real1.sum() * Kw).clamp(min=1)
+    return traj, w
+
+
+def _sep_term(sched, batch, loss_cfg, sample_cfg, out, x0, xk, k, fixed, gen, real, K) -> torch.Tensor:
+    """Separation of the predicted points: mean over (pair, point) of the weighted hinge, pairs of real robots
+    with at least one generated (a given pair is fixed data, no gradient to give)."""
+    start = batch["start"].repeat_interleave(K, 0) if K > 1 else batch["start"]
+    traj, w = _predicted_points(sched, loss_cfg, sample_cfg, out, x0, xk, k, fixed, start)
+    R = traj.shape[1]
+    d = (traj[:, :, None] - traj[:, None]).pow(2).sum(-1).add(1e-9).sqrt()  # (BK, R, R, H)
+    iu = torch.triu_indices(R, R, offset=1, device=traj.device)
+    d = d[:, iu[0], iu[1]]  # (BK, P, H)
+    pair = real[:, iu[0]] * real[:, iu[1]] * ((gen[:, iu[0]] + gen[:, iu[1]]) > 0).float()  # (BK, P)
+    th = loss_cfg.sep_distance
+    pen = w * (F.relu(th - d) / th) ** 2  # (BK, P, H)
+    return (pen.sum(-1) * pair).sum() / (pair.sum() * d.shape[-1]).clamp(min=1)

@@ -28,7 +28,7 @@ from ..world.tasks import Task, TaskConfig
 from .clusters import Cluster, overlapping_clusters
 from .guidance import Guide, finite_geodesic, known_fields
 from .planner import SAMPLERS, RokenPlanner
-from .select import SELECTIONS, choose, geodesic_field, held_hits, progress, violations
+from .select import SELECTIONS, choose, geodesic_field, held_hits, progress, team_progress, violations
 from .subgoal import subgoal
 
 
@@ -45,6 +45,7 @@ class PlanConfig:
     select: str = "none"  # none | safe | geodesic (roken+safe / roken+geodesic rows)
     fallback: str = "hold"  # no clean candidate: "hold" (the re-planned robots stop: a safety stop) or "fewest"
     verify_moves: int = 0  # chunk moves that must be clean (0 = all; the rest only ranks candidates; select.py)
+    select_team: float = 0.0  # ranking adds this x the followers' mean progress to the leader's (0 = leader only)
     sampler: str = "ddim"  # ddim | ddpm
     steps: int = 10  # DDIM steps (DDPM uses every diffusion step)
     device: str = "auto"  # auto (cuda where available) | cpu | cuda
@@ -186,9 +187,13 @@ class RokenRollout:
                     held = ~done[b] & ~np.isin(np.arange(N), c.members)
                     viol = viol + held_hits(paths[:, :, 1:pc.replan_every + 1], s.q[held], tc.d_coll_min)
                     prog = np.zeros(self.G)
+                    field = s.geodesic if pc.select == "geodesic" else None
                     if c.leader >= 0 and not c.fixed[c.leader]:
-                        prog = progress(s.q[s.task.leader], cand[:, c.leader, -1], s.task.goal,
-                                        s.geodesic if pc.select == "geodesic" else None)
+                        prog = progress(s.q[s.task.leader], cand[:, c.leader, -1], s.task.goal, field)
+                    followers = [i for i in range(m) if i != c.leader and not c.fixed[i]]
+                    if pc.select_team > 0 and followers:
+                        prog = prog + pc.select_team * team_progress(s.q[c.members[followers]],
+                                                                     cand[:, followers, -1], s.task.goal, field)
                     g = choose(viol, prog, late)
                     if viol[g] > 0 and pc.fallback == "hold":
                         cand = np.broadcast_to(s.q[c.members][None, :, None], cand.shape)

@@ -79,6 +79,14 @@ def progress(start: np.ndarray, ends: np.ndarray, goal: np.ndarray, field: np.nd
     return out.astype(np.float64)
 
 
+def team_progress(starts: np.ndarray, ends: np.ndarray, goal: np.ndarray, field: np.ndarray | None = None
+                  ) -> np.ndarray:
+    """(G,) mean progress toward the goal of robots from starts (f, 2) to ends (G, f, 2) (plan.select_team: the
+    followers', added to the leader's so a plan that brings a lagging follower round a block ranks higher and
+    the chain does not pull taut behind a leader that walks on)."""
+    return np.mean([progress(starts[i], ends[:, i], goal, field) for i in range(len(starts))], axis=0)
+
+
 def choose(viol: np.ndarray, prog: np.ndarray, late: np.ndarray | None = None) -> int:
     """Index of the best candidate: zero violations first (viol: in the verified moves), then fewest violations
     in the unverified rest (late, when given), then most progress."""

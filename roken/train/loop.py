@@ -329,7 +329,8 @@ class Pretraining:
                                                                             self.train_seconds / t.time_budget_s)
                 log.print(f"[pretrain] step {self.step}/{t.steps} ({100 * done:.1f}%) "
                           f"loss {metrics['losses/total']:.4f} traj {metrics['losses/traj']:.4f}"
-                          + "".join(f" {k[7:]} {metrics[k]:.4f}" for k in ("losses/wp", "losses/occ", "losses/sdf")
+                          + "".join(f" {k[7:]} {metrics[k]:.4f}"
+                                    for k in ("losses/wp", "losses/occ", "losses/sdf", "losses/sep")
                                     if k in metrics)
                           + f" | {rate:.0f} samples/s, data wait {100 * metrics['charts/data_wait_frac']:.0f}%, "
                           f"lr {metrics['charts/lr']:.2e}, ETA {duration(eta)}")
