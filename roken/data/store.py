@@ -52,8 +52,9 @@ EPISODES_SCHEMA = pa.schema([
 # Columns a planner may add (Roken): safety stops, and the chunk planned at each re-plan (for plots and GIFs):
 # plans holds len(plan_steps) * N * H * 2 values, layout [re-plan][robot][chunk move][x, y].
 # DAgger's relabelled episodes say where they come from: source "dagger" (an expert dataset's rows are "expert",
-# the column absent; "self": a successful rollout of the learner kept as executed, dagger.keep_success) and the round that visited the start state; training chunks of such an episode start
-# before step `sample_until` (0 = anywhere), near the learner's state it was relabelled from.
+# the column absent; "self": a successful rollout of the learner kept as executed, dagger.keep_success) and the
+# round that visited the start state; training chunks of such an episode start before step `sample_until`
+# (0 = anywhere), near the learner's state it was relabelled from.
 OPTIONAL_EPISODE_COLUMNS = {"holds": pa.int32(), "plan_steps": pa.list_(pa.int32()), "plans": pa.list_(pa.float32()),
                             "source": pa.string(), "round": pa.int32(), "sample_until": pa.int32()}
 

@@ -162,10 +162,14 @@ def pretraining_loss(model: RokenDiT, sched: NoiseSchedule, batch: dict, loss_cf
         bce = sum(F.binary_cross_entropy_with_logits(out[key][first], batch[key], reduction="none").mean(dim=(2, 3))
                   for key in ("occ_small", "occ_large"))
         terms["occ"] = _masked_mean(bce, real1)
+    # the predicted clean chunk's points, built once for the trajectory SDF part and the separation term
+    sdf_traj = loss_cfg.sdf > 0 and loss_cfg.sdf_mode != "off" and loss_cfg.sdf_traj != 0
+    points = _predicted_points(sched, loss_cfg, sample_cfg, out, x0, xk, k, fixed, rep(batch["start"])) \
+        if sdf_traj or loss_cfg.sep > 0 else None
     if loss_cfg.sdf > 0:
-        terms["sdf"] = _sdf_term(sched, batch, loss_cfg, sample_cfg, out, x0, xk, k, fixed, gen, K)
+        terms["sdf"] = _sdf_term(sched, batch, loss_cfg, sample_cfg, out, x0, xk, k, fixed, gen, K, points)
     if loss_cfg.sep > 0:
-        terms["sep"] = _sep_term(sched, batch, loss_cfg, sample_cfg, out, x0, xk, k, fixed, gen, real, K)
+        terms["sep"] = _sep_term(sched, batch, loss_cfg, sample_cfg, out, x0, xk, k, fixed, gen, real, K, points)
     sdf_w = loss_cfg.sdf * (1.0 if step is None else loss_cfg.sdf_scale(step))
     weights = {"traj": loss_cfg.traj, "wp": loss_cfg.wp, "occ": loss_cfg.occ, "sdf": sdf_w, "sep": loss_cfg.sep}
     loss = sum(weights[name] * v for name, v in terms.items())
@@ -174,7 +178,7 @@ def pretraining_loss(model: RokenDiT, sched: NoiseSchedule, batch: dict, loss_cf
     return loss, metrics
 
 
-def _sdf_term(sched, batch, loss_cfg, sample_cfg, out, x0, xk, k, fixed, gen, K) -> torch.Tensor:
+def _sdf_term(sched, batch, loss_cfg, sample_cfg, out, x0, xk, k, fixed, gen, K, points=None) -> torch.Tensor:
     """L_sdf: the trajectory part per loss.sdf_mode over the B K draws (averaged over draws), plus the waypoint
     part once per sample."""
     th = loss_cfg.sdf_threshold
@@ -187,7 +191,8 @@ def _sdf_term(sched, batch, loss_cfg, sample_cfg, out, x0, xk, k, fixed, gen, K)
     wp_sum = loss_cfg.sdf_wp * (pen_wp.sum(-1) * real1).sum()
     if loss_cfg.sdf_mode == "off" or loss_cfg.sdf_traj == 0:
         return wp_sum / (real1.sum() * Kw).clamp(min=1)
-    traj, w = _predicted_points(sched, loss_cfg, sample_cfg, out, x0, xk, k, fixed, start)
+    traj, w = points if points is not None else \
+        _predicted_points(sched, loss_cfg, sample_cfg, out, x0, xk, k, fixed, start)
     # each sample's K draws read its one SDF (rows are sample-major): no K copies of the (S, S) field
     d = sdf_at(batch["sdf"], traj.view(batch["sdf"].shape[0], -1, 2)).view(traj.shape[:-1])  # (BK, R, H)
     pen_traj = w * (F.relu(th - d) / norm) ** 2  # (BK, R, H)
@@ -213,11 +218,14 @@ def _predicted_points(sched, loss_cfg, sample_cfg, out, x0, xk, k, fixed, start)
     return traj, w
 
 
-def _sep_term(sched, batch, loss_cfg, sample_cfg, out, x0, xk, k, fixed, gen, real, K) -> torch.Tensor:
+def _sep_term(sched, batch, loss_cfg, sample_cfg, out, x0, xk, k, fixed, gen, real, K, points=None
+              ) -> torch.Tensor:
     """Separation of the predicted points: mean over (pair, point) of the weighted hinge, pairs of real robots
     with at least one generated (a given pair is fixed data, no gradient to give)."""
-    start = batch["start"].repeat_interleave(K, 0) if K > 1 else batch["start"]
-    traj, w = _predicted_points(sched, loss_cfg, sample_cfg, out, x0, xk, k, fixed, start)
+    if points is None:
+        start = batch["start"].repeat_interleave(K, 0) if K > 1 else batch["start"]
+        points = _predicted_points(sched, loss_cfg, sample_cfg, out, x0, xk, k, fixed, start)
+    traj, w = points
     R = traj.shape[1]
     d = (traj[:, :, None] - traj[:, None]).pow(2).sum(-1).add(1e-9).sqrt()  # (BK, R, R, H)
     iu = torch.triu_indices(R, R, offset=1, device=traj.device)

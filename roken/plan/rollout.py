@@ -190,8 +190,9 @@ class RokenRollout:
                     field = s.geodesic if pc.select == "geodesic" else None
                     if c.leader >= 0 and not c.fixed[c.leader]:
                         prog = progress(s.q[s.task.leader], cand[:, c.leader, -1], s.task.goal, field)
-                    followers = [i for i in range(m) if i != c.leader and not c.fixed[i]]
-                    if pc.select_team > 0 and followers:
+                    followers = [i for i in range(m) if i != c.leader and not c.fixed[i]] if pc.select_team > 0 \
+                        else []
+                    if followers:
                         prog = prog + pc.select_team * team_progress(s.q[c.members[followers]],
                                                                      cand[:, followers, -1], s.task.goal, field)
                     g = choose(viol, prog, late)
