@@ -232,3 +232,54 @@ def test_held_hits_counts_close_encounters_with_standing_robots():
     held = np.array([[10.0, 10.0]])
     assert held_hits(paths, held, 1.0).tolist() == [1, 0, 2]
     assert held_hits(paths, held[:0], 1.0).tolist() == [0, 0, 0]
+
+
+def _descend(field: np.ndarray, cell: tuple[int, int]) -> list[tuple[int, int]]:
+    """The cells of the steepest descent of a distance field from cell (r, c) to its zero."""
+    path = [cell]
+    while field[path[-1]] > 0:
+        r, c = path[-1]
+        nbrs = [(r + dr, c + dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if (dr or dc)
+                and 0 <= r + dr < field.shape[0] and 0 <= c + dc < field.shape[1]]
+        path.append(min(nbrs, key=lambda n: field[n]))
+        assert len(path) < field.size, "a distance field descends to its source"
+    return path
+
+
+def test_inflated_free_space_distance_keeps_clear_of_block_faces():
+    from roken.plan.select import geodesic_field, inflated_graph
+    from roken.world.geometry import signed_distance_field
+    from roken.world.paths import GridGraph
+
+    occ = np.zeros((40, 40), np.uint8)
+    occ[14:26, 15:25] = 1  # a block between start and goal, open all round
+    goal, start = np.array([35.5, 20.5]), (20, 4)  # goal (x, y); start cell (r, c) on the goal's row
+    plain = geodesic_field(occ, goal)
+    np.testing.assert_allclose(geodesic_field(occ, goal, GridGraph.build(occ == 0, np.ones(occ.shape))), plain)
+    inflated = geodesic_field(occ, goal, inflated_graph(occ, 3.0, 5.0))
+    free = occ == 0
+    assert (inflated[free] >= plain[free] - 1e-4).all(), "inflation only lengthens distances"
+    sdf = signed_distance_field(occ)
+    clear = lambda f: min(sdf[c] for c in _descend(f, start))  # noqa: E731
+    assert clear(plain) < 1.0, "the plain shortest path grazes the block's corners"
+    assert clear(inflated) >= 2.5, "the inflated one goes round at the inflation's distance"
+    gain = lambda r, c: inflated[r, c] - plain[r, c]  # noqa: E731
+    assert gain(20, 36) < gain(13, 20), "cells at a block face gain more than open cells near the goal"
+
+
+def test_rollout_goal_fields_use_the_inflated_distance(tiny):
+    from roken.plan.rollout import _Slot
+
+    cfg = load_config(None, ["eval.episodes=1"])
+    gm = generate_map(cfg.map, "eval", 0)
+    (_, task), = make_tasks(cfg, [gm], 1)[0]
+    slots = []
+    for inflate in (0.0, 3.0):
+        pc = PlanConfig(select="geodesic", guide=True, candidates=2, device="cpu", geo_inflate=inflate)
+        slots.append(_Slot(0, task, gm, RokenRollout(tiny, pc, cfg.task, cfg.expert)))
+    free = gm.occupancy == 0
+    for a, b in ((slots[0].geodesic, slots[1].geodesic), (slots[0].fields[1], slots[1].fields[1])):
+        ok = free & np.isfinite(a) & (a < 1e4)
+        assert (b[ok] >= a[ok] - 1e-4).all() and (b[ok] > a[ok] + 1.0).any()
+    with pytest.raises(ValueError, match="plan.geo_inflate"):
+        RokenRollout(tiny, PlanConfig(geo_inflate=-1.0, device="cpu"), cfg.task, cfg.expert)

@@ -28,7 +28,8 @@ from ..world.tasks import Task, TaskConfig
 from .clusters import Cluster, overlapping_clusters
 from .guidance import Guide, finite_geodesic, known_fields
 from .planner import SAMPLERS, RokenPlanner
-from .select import SELECTIONS, choose, geodesic_field, held_hits, progress, team_progress, violations
+from .select import (SELECTIONS, choose, geodesic_field, held_hits, inflated_graph, progress, team_progress,
+                     violations)
 from .subgoal import subgoal
 
 
@@ -46,6 +47,8 @@ class PlanConfig:
     fallback: str = "hold"  # no clean candidate: "hold" (the re-planned robots stop: a safety stop) or "fewest"
     verify_moves: int = 0  # chunk moves that must be clean (0 = all; the rest only ranks candidates; select.py)
     select_team: float = 0.0  # ranking adds this x the followers' mean progress to the leader's (0 = leader only)
+    geo_inflate: float = 0.0  # > 0: free-space distances (goal term, geodesic ranking) cost more within this many m
+    geo_inflate_weight: float = 2.0  # ... of an obstacle, up to 1 + this at its face (select.inflated_graph)
     sampler: str = "ddim"  # ddim | ddpm
     steps: int = 10  # DDIM steps (DDPM uses every diffusion step)
     device: str = "auto"  # auto (cuda where available) | cpu | cuda
@@ -94,6 +97,9 @@ def check(pc: PlanConfig, planner: RokenPlanner | None = None, team_size: int | 
     if pc.subgoal < 0 or pc.subgoal_after_hold < 0:
         raise ValueError(f"plan.subgoal={pc.subgoal}, plan.subgoal_after_hold={pc.subgoal_after_hold}: >= 0 (metres "
                          f"of path to look ahead, re-plans after a hold; 0 = the task's goal, at every re-plan)")
+    if pc.geo_inflate < 0 or pc.geo_inflate_weight < 0:
+        raise ValueError(f"plan.geo_inflate={pc.geo_inflate}, plan.geo_inflate_weight={pc.geo_inflate_weight}: >= 0 "
+                         f"(metres of clearance that cost more, and how much more; 0 = plain free-space distance)")
     if pc.verify_moves < 0:
         raise ValueError(f"plan.verify_moves={pc.verify_moves}: 0 (every planned move) or the moves to verify")
     if pc.guide and (pc.sampler != "ddim" or pc.guide_steps < 1 or pc.guide_iters < 1 or pc.guide_scale < 0
@@ -288,9 +294,23 @@ class _Slot:
         self.subgoal_left = 0  # re-plans left toward the sub-goal (plan.subgoal_after_hold)
         self.padded_known = gm.padded
         self.geodesic = None
+        self._inflated = None
+        graph = self.graph(gm.occupancy, gm.free_graph)
         if (ro.pc.select == "geodesic" or ro.pc.subgoal > 0) and not ro.pc.sensing_range:
-            self.geodesic = geodesic_field(gm.occupancy, task.goal, gm.free_graph)
-        self.fields = known_fields(gm.occupancy, task.goal, gm.free_graph) if ro.pc.guide else None
+            self.geodesic = geodesic_field(gm.occupancy, task.goal, graph)
+        self.fields = known_fields(gm.occupancy, task.goal, graph) if ro.pc.guide else None
+
+    def graph(self, known: np.ndarray, plain=None):
+        """The free-space graph of the goal fields: clearance-costed with plan.geo_inflate (built once for the
+        whole map, at every re-plan for a sensed one), else `plain`."""
+        pc = self.ro.pc
+        if pc.geo_inflate <= 0:
+            return plain
+        if self.seen is not None:
+            return inflated_graph(known, pc.geo_inflate, pc.geo_inflate_weight)
+        if self._inflated is None:
+            self._inflated = inflated_graph(known, pc.geo_inflate, pc.geo_inflate_weight)
+        return self._inflated
 
     def generator(self, stage: int) -> torch.Generator:
         """The noise of this re-plan: the episode's running stream, or (plan.noise=episode) the same draw at every
@@ -302,7 +322,7 @@ class _Slot:
     def leader_field(self) -> np.ndarray:
         """(S, S) free-space distance to the leader's current position on the known map (the follow term)."""
         known = self.gm.occupancy if self.seen is None else known_occupancy(self.gm.occupancy, self.seen)
-        graph = self.gm.free_graph if self.seen is None else None
+        graph = self.graph(known, self.gm.free_graph if self.seen is None else None)
         return finite_geodesic(known, self.q[self.task.leader], graph)
 
     def goal(self) -> np.ndarray:
@@ -325,13 +345,13 @@ class _Slot:
             return
         now = sensed_cells(self.q, self.gm.shape[0], pc.sensing_range)
         self.seen = now if self.seen is None or not pc.accumulate else self.seen | now
+        known = known_occupancy(self.gm.occupancy, self.seen)
         if pc.guide:  # the guidance sees the known map only
-            self.fields = known_fields(known_occupancy(self.gm.occupancy, self.seen), self.task.goal)
+            self.fields = known_fields(known, self.task.goal, self.graph(known))
         if pc.select != "none" or pc.subgoal > 0:
-            known = known_occupancy(self.gm.occupancy, self.seen)
             self.padded_known = pad_for_clearance(known)
             if pc.select == "geodesic" or pc.subgoal > 0:
-                self.geodesic = geodesic_field(known, self.task.goal)
+                self.geodesic = geodesic_field(known, self.task.goal, self.graph(known))
 
     def execute(self, plan: np.ndarray) -> None:
         """The first replan_every chunk moves of plan (N, H, 2), one simulator step at a time."""

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..world.geometry import clearance
+from ..world.geometry import clearance, signed_distance_field
 from ..world.graph import connected
 from ..world.paths import GridGraph
 
@@ -54,9 +54,18 @@ def held_hits(paths: np.ndarray, held: np.ndarray, d_coll: float) -> np.ndarray:
     return (d < d_coll).sum(axis=(1, 2, 3))
 
 
+def inflated_graph(known_occupancy: np.ndarray, within: float, weight: float) -> GridGraph:
+    """The free-cell graph whose cells closer than `within` metres to a known obstacle cost up to 1 + weight
+    (linear in the shortfall; plan.geo_inflate, plan.geo_inflate_weight): the free-space distance then follows
+    paths that keep clear of block corners, where the guidance's obstacle term would fight its goal pull."""
+    sdf = signed_distance_field(known_occupancy)
+    return GridGraph.build(known_occupancy == 0, 1.0 + weight * np.clip(1.0 - sdf / within, 0.0, 1.0))
+
+
 def geodesic_field(known_occupancy: np.ndarray, goal: np.ndarray, graph: GridGraph | None = None) -> np.ndarray:
     """(H, W) octile distance to the goal's cell over the known free cells (inf on obstacles / unreachable);
-    `graph`: the free-cell graph of known_occupancy when one is already built (GridMap.free_graph)."""
+    `graph`: the free-cell graph of known_occupancy when one is already built (GridMap.free_graph, or
+    inflated_graph for clearance-costed distances)."""
     graph = graph or GridGraph.build(known_occupancy == 0)
     src = graph.nearest_node(np.asarray(goal, np.float64), search_all=True)
     return graph.field_grid(src) if src >= 0 else np.full(known_occupancy.shape, np.inf)

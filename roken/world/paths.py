@@ -28,7 +28,9 @@ class GridGraph:
     component: np.ndarray  # (V,) connected-component label of each node
 
     @classmethod
-    def build(cls, free: np.ndarray) -> "GridGraph":
+    def build(cls, free: np.ndarray, cell_cost: np.ndarray | None = None) -> "GridGraph":
+        """cell_cost (H, W) >= 1: an edge costs its octile length x the mean cost of its two cells (a costmap's
+        inflation: a path near obstacles counts longer); None: plain octile lengths."""
         free = np.asarray(free, dtype=bool)
         H, W = free.shape
         node = np.full((H, W), -1, dtype=np.int64)
@@ -45,7 +47,8 @@ class GridGraph:
             cc = c[0, kk]
             src.append(node[rr, cc])
             dst.append(node[rr + dr, cc + dc])
-            cost.append(np.full(len(rr), w))
+            cost.append(np.full(len(rr), w) if cell_cost is None else
+                        w * 0.5 * (cell_cost[rr, cc] + cell_cost[rr + dr, cc + dc]))
         V = len(cells)
         src, dst, cost = np.concatenate(src), np.concatenate(dst), np.concatenate(cost)
         # both directions stored: searches run as directed, so scipy does not convert the matrix per call
