@@ -346,12 +346,13 @@ class _Slot:
         now = sensed_cells(self.q, self.gm.shape[0], pc.sensing_range)
         self.seen = now if self.seen is None or not pc.accumulate else self.seen | now
         known = known_occupancy(self.gm.occupancy, self.seen)
+        graph = self.graph(known)
         if pc.guide:  # the guidance sees the known map only
-            self.fields = known_fields(known, self.task.goal, self.graph(known))
+            self.fields = known_fields(known, self.task.goal, graph)
         if pc.select != "none" or pc.subgoal > 0:
             self.padded_known = pad_for_clearance(known)
             if pc.select == "geodesic" or pc.subgoal > 0:
-                self.geodesic = geodesic_field(known, self.task.goal, self.graph(known))
+                self.geodesic = geodesic_field(known, self.task.goal, graph)
 
     def execute(self, plan: np.ndarray) -> None:
         """The first replan_every chunk moves of plan (N, H, 2), one simulator step at a time."""
