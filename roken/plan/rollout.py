@@ -294,23 +294,15 @@ class _Slot:
         self.subgoal_left = 0  # re-plans left toward the sub-goal (plan.subgoal_after_hold)
         self.padded_known = gm.padded
         self.geodesic = None
-        self._inflated = None
-        graph = self.graph(gm.occupancy, gm.free_graph)
-        if (ro.pc.select == "geodesic" or ro.pc.subgoal > 0) and not ro.pc.sensing_range:
-            self.geodesic = geodesic_field(gm.occupancy, task.goal, graph)
-        self.fields = known_fields(gm.occupancy, task.goal, graph) if ro.pc.guide else None
-
-    def graph(self, known: np.ndarray, plain=None):
-        """The free-space graph of the goal fields: clearance-costed with plan.geo_inflate (built once for the
-        whole map, at every re-plan for a sensed one), else `plain`."""
-        pc = self.ro.pc
-        if pc.geo_inflate <= 0:
-            return plain
-        if self.seen is not None:
-            return inflated_graph(known, pc.geo_inflate, pc.geo_inflate_weight)
-        if self._inflated is None:
-            self._inflated = inflated_graph(known, pc.geo_inflate, pc.geo_inflate_weight)
-        return self._inflated
+        pc = ro.pc
+        # the free-space graph of the known map that the goal fields use: clearance-costed with plan.geo_inflate
+        # (built once here for the whole map; observe() rebuilds it for a sensed one), None = build a plain one
+        uses = pc.guide or pc.select == "geodesic" or pc.subgoal > 0
+        self.goal_graph = inflated_graph(gm.occupancy, pc.geo_inflate, pc.geo_inflate_weight) \
+            if pc.geo_inflate > 0 and uses and not pc.sensing_range else gm.free_graph
+        if (pc.select == "geodesic" or pc.subgoal > 0) and not pc.sensing_range:
+            self.geodesic = geodesic_field(gm.occupancy, task.goal, self.goal_graph)
+        self.fields = known_fields(gm.occupancy, task.goal, self.goal_graph) if pc.guide else None
 
     def generator(self, stage: int) -> torch.Generator:
         """The noise of this re-plan: the episode's running stream, or (plan.noise=episode) the same draw at every
@@ -322,8 +314,7 @@ class _Slot:
     def leader_field(self) -> np.ndarray:
         """(S, S) free-space distance to the leader's current position on the known map (the follow term)."""
         known = self.gm.occupancy if self.seen is None else known_occupancy(self.gm.occupancy, self.seen)
-        graph = self.graph(known, self.gm.free_graph if self.seen is None else None)
-        return finite_geodesic(known, self.q[self.task.leader], graph)
+        return finite_geodesic(known, self.q[self.task.leader], self.goal_graph)
 
     def goal(self) -> np.ndarray:
         """The leader's goal for this re-plan: the task's, or (plan.subgoal) a sub-goal along the free-space path."""
@@ -346,13 +337,14 @@ class _Slot:
         now = sensed_cells(self.q, self.gm.shape[0], pc.sensing_range)
         self.seen = now if self.seen is None or not pc.accumulate else self.seen | now
         known = known_occupancy(self.gm.occupancy, self.seen)
-        graph = self.graph(known)
+        self.goal_graph = inflated_graph(known, pc.geo_inflate, pc.geo_inflate_weight) if pc.geo_inflate > 0 \
+            else None
         if pc.guide:  # the guidance sees the known map only
-            self.fields = known_fields(known, self.task.goal, graph)
+            self.fields = known_fields(known, self.task.goal, self.goal_graph)
         if pc.select != "none" or pc.subgoal > 0:
             self.padded_known = pad_for_clearance(known)
             if pc.select == "geodesic" or pc.subgoal > 0:
-                self.geodesic = geodesic_field(known, self.task.goal, graph)
+                self.geodesic = geodesic_field(known, self.task.goal, self.goal_graph)
 
     def execute(self, plan: np.ndarray) -> None:
         """The first replan_every chunk moves of plan (N, H, 2), one simulator step at a time."""
