@@ -186,3 +186,45 @@ def _check_path(cls: type, dotted: str) -> None:
                 f"--set {dotted}: unknown key '{p}'; valid keys here: {', '.join(sorted(hints))}"
             )
         node = hints[p]
+
+
+# Fields added to a config section after evaluation folders were being written, in the order they were added,
+# each with the value that gives the behaviour from before it existed. A stored config, or an episode file's
+# fingerprint, from before a field existed reads as having it at that value, so that adding a field never stops
+# a finished evaluation from resuming (roken/eval/harness.py). Adding a config field that the episode
+# fingerprint hashes (a plan.* field): append it here; tests/test_resume_fields.py checks that none is missing.
+LATER_FIELDS: tuple[tuple[str, Any], ...] = (
+    ("plan.noise", "fresh"),  # 2026-12-01
+    ("plan.verify_moves", 0),  # 2026-12-02
+    ("plan.guide_follow", 0.0),
+    ("plan.guide_follow_range", 10.0),
+    ("plan.noise_scale", 1.0),
+    ("plan.subgoal", 0.0),
+    ("plan.subgoal_sight", True),
+    ("plan.subgoal_after_hold", 0),
+    ("plan.select_team", 0.0),  # 2026-12-03
+    ("plan.geo_inflate", 0.0),
+    ("plan.geo_inflate_weight", 2.0),
+)
+
+
+def with_later_fields(d: dict) -> dict:
+    """A copy of config dict `d` (to_dict's nesting) with every LATER_FIELDS key its section lacks set to the
+    value from before the field existed (a section `d` does not hold stays absent)."""
+    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in d.items()}
+    for dotted, value in LATER_FIELDS:
+        section, key = dotted.split(".", 1)
+        if isinstance(out.get(section), dict) and key not in out[section]:
+            out[section][key] = value
+    return out
+
+
+def without_later_fields(d: dict, since: int = 0) -> dict:
+    """A copy of config dict `d` without the fields LATER_FIELDS[since:] that are at the value from before they
+    existed: the dict a config of that era would have hashed (since = len(LATER_FIELDS): `d` itself)."""
+    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in d.items()}
+    for dotted, value in LATER_FIELDS[since:]:
+        section, key = dotted.split(".", 1)
+        if isinstance(out.get(section), dict) and key in out[section] and out[section][key] == value:
+            del out[section][key]
+    return out

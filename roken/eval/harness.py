@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..configtools import from_dict, to_dict
+from ..configtools import LATER_FIELDS, from_dict, to_dict, with_later_fields, without_later_fields
 from ..data import fs
 from ..data.store import (StoreError, atomic_write_json, atomic_write_table, episode_record, episodes_table,
                           file_metadata, maps_table, read_episodes, read_json)
@@ -131,7 +131,9 @@ def _refuse_other_config(out: str, cfg, model_id: str = "") -> None:
         old = metrics.get("config", {})
     except (OSError, ValueError):
         return
-    new = json.loads(json.dumps(to_dict(cfg), default=str))
+    # a field the stored config lacks (added since) reads as the value from before it existed
+    old = with_later_fields(old)
+    new = with_later_fields(json.loads(json.dumps(to_dict(cfg), default=str)))
     keys = ("map", "task", "expert", "eval")
     changed = [c for c in changed_keys({k: old.get(k) for k in keys}, {k: new[k] for k in keys})
                if not c.startswith(("eval.robots", "eval.planner"))]
@@ -149,7 +151,26 @@ def _refuse_other_config(out: str, cfg, model_id: str = "") -> None:
 
 def fingerprint(cfg, n: int, planner: str = "laplacian", model_id: str = "") -> str:
     """What an episode file depends on: tasks (map, task, eval), the planner's own settings (the expert's, or
-    Roken's plan section and weights)."""
+    Roken's plan section and weights); fields added since the first folders (configtools.LATER_FIELDS) enter it
+    only when they are not at the value from before they existed, so adding a field changes no fingerprint."""
+    return fingerprints(cfg, n, planner, model_id)[0]
+
+
+def fingerprints(cfg, n: int, planner: str = "laplacian", model_id: str = "") -> list[str]:
+    """The fingerprint an episode file is written with, then those under which code of each earlier field set
+    wrote the same episodes (LATER_FIELDS[k:] left out when at their old value; the last: every field hashed):
+    a file written by any of them is resumed."""
+    d = _fingerprint_dict(cfg, planner, model_id)
+    out = []
+    for since in range(len(LATER_FIELDS) + 1):
+        fp = hashlib.sha256(json.dumps([without_later_fields(d, since), n], sort_keys=True,
+                                       default=str).encode()).hexdigest()[:16]
+        if fp not in out:
+            out.append(fp)
+    return out
+
+
+def _fingerprint_dict(cfg, planner: str, model_id: str) -> dict:
     d = to_dict(cfg)
     d["eval"] = {k: v for k, v in d["eval"].items() if k not in ("robots", "planner")}
     keys = ("map", "task", "expert", "eval")
@@ -160,8 +181,7 @@ def fingerprint(cfg, n: int, planner: str = "laplacian", model_id: str = "") -> 
     elif planner != "laplacian":
         d["plan"] = rollout_config(cfg.plan, planner).__dict__ | {"checkpoint": model_id}
         keys = keys + ("plan",)
-    d = {k: v for k, v in d.items() if k in keys}
-    return hashlib.sha256(json.dumps([d, n], sort_keys=True, default=str).encode()).hexdigest()[:16]
+    return {k: v for k, v in d.items() if k in keys}
 
 
 def rollout_config(pc: PlanConfig, planner: str) -> PlanConfig:
@@ -258,13 +278,13 @@ def eval_unit(ctx: dict, payload: dict, cache: dict) -> list[dict]:
     return [r for r in rows if r is not None]
 
 
-def _reuse(path: str, fp: str, n: int):
-    """(rows, skipped) of a team size finished earlier with the same config, else None."""
+def _reuse(path: str, fps: list[str], n: int):
+    """(rows, skipped) of a team size finished earlier with the same config (any of `fps`), else None."""
     if not fs.exists(path):
         return None
     try:
         meta = file_metadata(path)
-        if meta.get("fingerprint") == fp:
+        if meta.get("fingerprint") in fps:
             print(f"[N={n}] reusing {path} (same config)", file=sys.stderr)
             return read_episodes(path), meta.get("skipped", [])
     except (StoreError, OSError, ValueError):
@@ -326,7 +346,7 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
     for n in cfg.eval.robots:
         tasks = None
         for p in planners:
-            reused = _reuse(episode_file(out, p, n), fingerprint(cfg, n, p, weights_id(p)), n)
+            reused = _reuse(episode_file(out, p, n), fingerprints(cfg, n, p, weights_id(p)), n)
             if reused is not None:
                 done[(p, n)] = reused
                 skipped_by_n.setdefault(n, reused[1])

@@ -1,0 +1,94 @@
+"""An evaluation folder written before a plan field existed resumes once the field is added at the value that
+reproduces the old behaviour, and is refused (naming the field) when the field is set to anything else."""
+import dataclasses
+import hashlib
+import json
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import pytest
+
+from roken.config import load_config
+from roken.configtools import LATER_FIELDS, with_later_fields, without_later_fields
+from roken.data.store import StoreError
+from roken.eval import harness
+from roken.plan.rollout import PlanConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+# the plan fields of the first evaluation folders (git cda34c2 .. 7cc6f69, 2026-11-23 .. 12-01): a field added
+# since is either in configtools.LATER_FIELDS (with its old value) or, where no value gives the old behaviour (the
+# guidance fields came with the roken+guided rows), listed here knowingly
+BASE_PLAN = {"checkpoint", "which", "replan_every", "cluster_size", "cluster_new", "sensing_range", "accumulate",
+             "candidates", "select", "fallback", "sampler", "steps", "device", "dtype", "batch_size", "seed",
+             "record_plans", "guide", "guide_scale", "guide_steps", "guide_iters", "guide_final_iters", "guide_lr",
+             "guide_margin", "guide_obstacle", "guide_inter", "guide_connect", "guide_goal", "guide_exec_weight"}
+
+
+def test_every_plan_field_is_base_or_registered_with_its_default():
+    later = {k.split(".", 1)[1]: v for k, v in LATER_FIELDS if k.startswith("plan.")}
+    fields = {f.name: f.default for f in dataclasses.fields(PlanConfig)}
+    assert set(fields) == BASE_PLAN | set(later), "a new plan.* field: append it to configtools.LATER_FIELDS"
+    assert not BASE_PLAN & set(later)
+    assert all(fields[k] == v for k, v in later.items()), "a registered value that is no longer the default"
+
+
+def test_later_fields_helpers():
+    d = {"plan": {"seed": 0, "geo_inflate": 0.0, "geo_inflate_weight": 5.0}, "eval": {"episodes": 3}}
+    assert with_later_fields({"plan": {"seed": 0}})["plan"]["geo_inflate"] == 0.0
+    assert "plan" not in with_later_fields({"eval": {}})  # a section the config does not hold stays absent
+    assert without_later_fields(d)["plan"] == {"seed": 0, "geo_inflate_weight": 5.0}  # not at its old value: kept
+    assert without_later_fields(d, len(LATER_FIELDS)) == d and d["plan"]["geo_inflate"] == 0.0  # d untouched
+
+
+def _cfg(*sets):
+    return load_config(None, ["eval.planner=roken", "eval.robots=[2]", "eval.episodes=1", "eval.num_maps=1",
+                              f"plan.checkpoint={ROOT / 'models' / 'roken-cpu-four'}", "plan.steps=2",
+                              "expert.step_limit_factor=0.2", *sets])
+
+
+def _as_written_before_geo_inflate(out: Path, cfg, model_id: str) -> None:
+    """Rewrite `out` as the code of 2026-12-03 (before plan.geo_inflate) wrote it: its metrics.json config
+    without the two fields, the episode file's fingerprint hashed without them (as that code computed it)."""
+    m = json.loads((out / "metrics.json").read_text())
+    for k in ("geo_inflate", "geo_inflate_weight"):
+        del m["config"]["plan"][k]
+    (out / "metrics.json").write_text(json.dumps(m))
+    d = harness._fingerprint_dict(cfg, "roken", model_id)
+    for k in ("geo_inflate", "geo_inflate_weight"):
+        del d["plan"][k]
+    old_fp = hashlib.sha256(json.dumps([d, 2], sort_keys=True, default=str).encode()).hexdigest()[:16]
+    path = out / "episodes" / "roken-n02.parquet"
+    table = pq.read_table(path)
+    meta = dict(table.schema.metadata)
+    meta[b"fingerprint"] = json.dumps(old_fp).encode()
+    pq.write_table(table.replace_schema_metadata(meta), path)
+    assert old_fp not in harness.fingerprints(cfg, 2, "roken", model_id)[-1:]  # not the full hash of today's fields
+
+
+def test_a_folder_from_before_a_field_resumes_and_another_value_is_refused(tmp_path, capsys):
+    out = tmp_path / "ev"
+    cfg = _cfg()
+    first = harness.evaluate(cfg, out)
+    _, model_id = harness.load_model(cfg)
+    _as_written_before_geo_inflate(out, cfg, model_id)
+    before = (out / "episodes" / "roken-n02.parquet").read_bytes()
+    capsys.readouterr()
+    again = harness.evaluate(cfg, out)  # the same command after the field was added at its default
+    assert "reusing" in capsys.readouterr().err
+    assert (out / "episodes" / "roken-n02.parquet").read_bytes() == before  # reused, not re-run
+    assert json.dumps(again["planners"]["roken"]) == json.dumps(first["planners"]["roken"])  # NaN length alike
+    _as_written_before_geo_inflate(out, cfg, model_id)
+    before = (out / "episodes" / "roken-n02.parquet").read_bytes()
+    with pytest.raises(StoreError, match=r"plan\.geo_inflate: 0\.0 -> 3\.0"):
+        harness.evaluate(_cfg("plan.geo_inflate=3.0"), out)
+    assert (out / "episodes" / "roken-n02.parquet").read_bytes() == before  # nothing overwritten
+    # a file written with today's full field set (every field hashed) resumes as well
+    fps = harness.fingerprints(cfg, 2, "roken", model_id)
+    assert fps[0] == harness.fingerprint(cfg, 2, "roken", model_id) and len(fps) > 1
+    path = out / "episodes" / "roken-n02.parquet"
+    table = pq.read_table(path)
+    pq.write_table(table.replace_schema_metadata(dict(table.schema.metadata) | {b"fingerprint": json.dumps(
+        fps[-1]).encode()}), path)
+    capsys.readouterr()
+    harness.evaluate(cfg, out)
+    assert "reusing" in capsys.readouterr().err
