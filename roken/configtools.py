@@ -205,6 +205,7 @@ LATER_FIELDS: tuple[tuple[str, Any], ...] = (
     ("plan.select_team", 0.0),  # 2026-12-03
     ("plan.geo_inflate", 0.0),
     ("plan.geo_inflate_weight", 2.0),
+    ("plan.verify_steps", False),  # 2026-12-04
 )
 
 

@@ -194,6 +194,32 @@ def test_safe_selection_prefers_clean_candidates():
     assert choose(hf, np.array([20.0, 30.0, 10.0]), vf - hf) == int(np.argmin(np.where(hf == 0, vf - hf, 1e9)))
 
 
+def test_executed_points_are_what_the_episode_records_and_catch_what_points_miss(tiny):
+    """plan.verify_steps: between two planned points two robots can pass closer than at either point; the
+    simulator's steps (executed_points, exactly what _Slot.execute records) show it."""
+    from roken.plan.rollout import _Slot, executed_points
+
+    occ = np.zeros((40, 40), np.uint8)
+    padded = pad_for_clearance(occ)
+    q = np.array([[10.0, 10.0], [12.0, 12.0]])
+    plan = np.repeat(q[:, None], 16, 1).copy()
+    plan[0, 0], plan[1, 0] = [12.0, 12.0], [10.0, 10.0]  # the two swap places in one move: they meet half way
+    plan[0, 1:], plan[1, 1:] = [12.0, 12.0], [10.0, 10.0]
+    pts = np.concatenate([q[:, None], plan], 1)[None]
+    assert violations(pts, padded, None, 1.0, 2.0, 15.0)[0] == 0  # 2.83 m apart at every planned point
+    steps = executed_points(q, plan[None], 2, 4, 0.5)
+    assert steps.shape == (1, 2, 8, 2) and violations(steps, padded, None, 1.0, 2.0, 15.0)[0] > 0
+    cfg = load_config(None, [])
+    gm = generate_map(cfg.map, "eval", 0)
+    tasks, _ = make_tasks(load_config(None, ["eval.episodes=1"]), [gm], 3)
+    slot = _Slot(0, tasks[0][1], gm, RokenRollout(tiny, PlanConfig(device="cpu"), cfg.task, cfg.expert))
+    rng = np.random.default_rng(0)
+    plans = slot.q[:, None] + np.cumsum(rng.uniform(-2.5, 2.5, (3, 16, 2)), 1)  # some moves beyond full speed
+    want = executed_points(slot.q, plans[None], 2, 4, cfg.task.max_step)[0]
+    slot.execute(plans)
+    assert np.array_equal(np.asarray(slot.hist[1:], np.float32).transpose(1, 0, 2), want)
+
+
 def test_team_progress_ranks_a_plan_that_brings_the_followers_along():
     from roken.plan.select import geodesic_field, progress, team_progress
 

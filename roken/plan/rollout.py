@@ -46,6 +46,7 @@ class PlanConfig:
     select: str = "none"  # none | safe | geodesic (roken+safe / roken+geodesic rows)
     fallback: str = "hold"  # no clean candidate: "hold" (the re-planned robots stop: a safety stop) or "fewest"
     verify_moves: int = 0  # chunk moves that must be clean (0 = all; the rest only ranks candidates; select.py)
+    verify_steps: bool = False  # also verify every simulator step of the executed moves (executed_points)
     select_team: float = 0.0  # ranking adds this x the followers' mean progress to the leader's (0 = leader only)
     geo_inflate: float = 0.0  # > 0: free-space distances (goal term, geodesic ranking) cost more within this many m
     geo_inflate_weight: float = 2.0  # ... of an obstacle, up to 1 + this at its face (select.inflated_graph)
@@ -86,6 +87,23 @@ def step_toward(q: np.ndarray, prev: np.ndarray, target: np.ndarray, k: int, int
     d = prev + (target - prev) * (k / interval) - q
     norm = np.linalg.norm(d, axis=-1, keepdims=True)
     return d * np.minimum(1.0, (max_step - 1e-4) / np.maximum(norm, 1e-12))
+
+
+def executed_points(q: np.ndarray, plans: np.ndarray, moves: int, interval: int, max_step: float) -> np.ndarray:
+    """The simulator's positions while executing the first `moves` chunk moves of plans (G, m, H, 2) from q (m, 2):
+    (G, m, moves * interval, 2), stepped and rounded exactly as _Slot.execute does (what the metrics read).
+    Between planned points robots can cut a corner, pass each other closer than at either point, or trade one
+    spanning tree for another, so verified selection checks these too (plan.verify_steps)."""
+    G = plans.shape[0]
+    cur = np.broadcast_to(np.asarray(q, np.float64), (G,) + np.shape(q)).copy()
+    prev, out = cur.copy(), []
+    for j in range(moves):
+        for k in range(1, interval + 1):
+            cur = (cur + step_toward(cur, prev, plans[:, :, j], k, interval, max_step)).astype(np.float32)
+            out.append(cur)
+            cur = cur.astype(np.float64)
+        prev = plans[:, :, j].astype(np.float64)
+    return np.stack(out, axis=2) if out else np.zeros(plans.shape[:2] + (0, 2), np.float32)
 
 
 def check(pc: PlanConfig, planner: RokenPlanner | None = None, team_size: int | None = None) -> None:
@@ -150,7 +168,7 @@ class RokenRollout:
 
     def plan_step(self, slots: list["_Slot"]) -> np.ndarray:
         """One re-plan for the given episodes: (len(slots), N, H, 2) the chosen plans in metres."""
-        pc, tc, H = self.pc, self.tc, self.planner.cfg.horizon
+        pc, tc, cfg, H = self.pc, self.tc, self.planner.cfg, self.planner.cfg.horizon
         N = len(slots[0].q)
         planned = np.full((len(slots), N, H, 2), np.nan, np.float32)
         done = np.zeros((len(slots), N), bool)
@@ -189,6 +207,11 @@ class RokenRollout:
                         late = count(paths[:, :, V:], other_paths[:, V:])
                     else:
                         viol = count(paths, other_paths)
+                    if pc.verify_steps:  # the executed moves at the simulator's resolution, the metrics' own
+                        step = lambda p, q0: executed_points(q0, p, pc.replan_every, cfg.interval,  # noqa: E731
+                                                             tc.max_step)
+                        viol = viol + count(step(cand, s.q[c.members]),
+                                            step(planned[b][others][None], s.q[others])[0])
                     # later clusters' robots where they stand: the moves executed before they re-plan keep clear
                     held = ~done[b] & ~np.isin(np.arange(N), c.members)
                     viol = viol + held_hits(paths[:, :, 1:pc.replan_every + 1], s.q[held], tc.d_coll_min)
