@@ -5,6 +5,7 @@
     python benchmarks/plan.py --device cuda --dtype bf16        # GPU
     python benchmarks/plan.py --rollout-only --checkpoint models/roken-small-mixed
     python benchmarks/plan.py --latency-only --threads 1 --presets small      # guided vs unguided
+    python benchmarks/plan.py --verify-only --threads 1                       # verified selection's cost
 
 Latency: one plan = the condition (roken.data.condition), map encoding and DDIM-10 for all robots, 1 or 32
 candidates in one batch, through RokenPlanner.sample (random weights: the cost does not depend on them);
@@ -13,6 +14,8 @@ the schedule shown: the guided DDIM steps (plan.guide_steps), the descent iterat
 last (plan.guide_iters) and at the last (plan.guide_final_iters); `default` = the config's defaults, `10x50` = the
 first implementation's schedule; the known-map fields are computed once per episode and not timed. Throughput: closed-loop episodes/s of the shipped model on the same
 evaluation tasks with continuous batching (plan.batch_size episodes per model call) vs one episode at a time.
+Verification: verified selection's check of G candidates (4 robots, H = 16) on the known map, at the plan's
+points and, with plan.verify_steps, at every simulator step of the executed moves (rollout.executed_points).
 """
 from __future__ import annotations
 
@@ -60,6 +63,31 @@ def latency(planner: RokenPlanner, n: int, G: int, repeat: int, rng, guided: boo
     return statistics.median(times)
 
 
+def verify_cost(G: int, repeat: int, rng, steps: bool) -> float:
+    """Seconds to count the violations of G candidate plans of 4 robots on the known map (one re-plan)."""
+    from roken.plan.rollout import executed_points
+    from roken.plan.select import violations
+    from roken.world.geometry import pad_for_clearance
+
+    cfg = load_config(None, [])
+    occ = generate_map(MapConfig(), "eval", 0).occupancy
+    padded, tc = pad_for_clearance(occ), cfg.task
+    free = np.argwhere(occ == 0)
+    times = []
+    for r in range(repeat + 2):
+        q = free[rng.choice(len(free), size=4, replace=False)][:, ::-1] + 0.5
+        cand = q[None, :, None] + np.cumsum(rng.normal(0, 0.3, (G, 4, 16, 2)), axis=2)
+        t0 = time.perf_counter()
+        paths = np.concatenate([np.broadcast_to(q[None, :, None], (G, 4, 1, 2)), cand], axis=2)
+        viol = violations(paths, padded, None, tc.d_obs_min, tc.d_coll_min, tc.comm_radius)
+        if steps:
+            ex = executed_points(q, cand, PlanConfig().replan_every, SampleConfig().interval, tc.max_step)
+            viol = viol + violations(ex, padded, None, tc.d_obs_min, tc.d_coll_min, tc.comm_radius)
+        if r >= 2:
+            times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
 def throughput(checkpoint: str, episodes: int, batch: int, device: str) -> float:
     cfg = load_config(None, [f"eval.episodes={episodes}"])
     maps = [generate_map(cfg.map, "eval", i) for i in range(episodes)]
@@ -85,11 +113,20 @@ def main(argv=None):
     p.add_argument("--episodes", type=int, default=16, help="closed-loop episodes (4 robots)")
     p.add_argument("--rollout-only", action="store_true")
     p.add_argument("--latency-only", action="store_true")
+    p.add_argument("--verify-only", action="store_true", help="only the cost of verified selection")
     a = p.parse_args(argv)
     if a.threads:
         torch.set_num_threads(a.threads)
     print(f"device {a.device}, dtype {a.dtype}, torch threads {torch.get_num_threads()}")
     rng = np.random.default_rng(0)
+    if not a.rollout_only:
+        print(f"{'verified selection, 4 robots':<30}{'candidates':>11}{'ms / re-plan':>14}")
+        for G in (1, 8, 32):
+            for steps in (False, True):
+                ms = verify_cost(G, max(a.repeat, 20), rng, steps) * 1e3
+                print(f"{'points + executed steps' if steps else 'planned points':<30}{G:>11}{ms:>14.2f}")
+    if a.verify_only:
+        return
     if not a.rollout_only:
         print(f"{'preset':<8}{'robots':>7}{'candidates':>11}{'guided':>10}{'ms / plan (DDIM-10)':>22}")
         old = ["plan.guide_steps=10", "plan.guide_iters=50", "plan.guide_final_iters=0"]

@@ -1,5 +1,6 @@
 """An evaluation folder written before a plan field existed resumes once the field is added at the value that
-reproduces the old behaviour, and is refused (naming the field) when the field is set to anything else."""
+reproduces the old behaviour, and is refused (naming the field) when the field is set to anything else; a killed
+evaluation resumes from the units it finished."""
 import dataclasses
 import hashlib
 import json
@@ -94,3 +95,40 @@ def test_a_folder_from_before_a_field_resumes_and_another_value_is_refused(tmp_p
     capsys.readouterr()
     harness.evaluate(cfg, out)
     assert "reusing" in capsys.readouterr().err
+
+
+class _KilledAfterOneUnit(harness.InProcessRunner):
+    """In-process runner that dies (as a Ctrl-C or a lost node would) once its first unit has come back."""
+
+    def imap_unordered(self, fn_ref, ctx, units):
+        units = list(units)
+        self.ran = len(units)
+        it = super().imap_unordered(fn_ref, ctx, units)
+        yield next(it)
+        raise KeyboardInterrupt
+
+
+class _Counting(harness.InProcessRunner):
+    def imap_unordered(self, fn_ref, ctx, units):
+        units = list(units)
+        self.ran = [u.key for u in units]
+        yield from super().imap_unordered(fn_ref, ctx, units)
+
+
+def test_a_killed_evaluation_resumes_from_its_finished_units(tmp_path, capsys):
+    cfg = load_config(None, ["eval.robots=[2]", "eval.episodes=4", "eval.num_maps=2", "eval.unit_episodes=2",
+                             "expert.step_limit_factor=0.5"])
+    whole = harness.evaluate(cfg, tmp_path / "whole")
+    with pytest.raises(KeyboardInterrupt):
+        harness.evaluate(cfg, tmp_path / "cut", runner=_KilledAfterOneUnit())
+    out = tmp_path / "cut"
+    assert not (out / "episodes" / "n02.parquet").exists()  # nothing half-written where readers look
+    assert len(list((out / "episodes" / "_units").glob("*.parquet"))) == 1
+    runner = _Counting()
+    again = harness.evaluate(cfg, out, runner=runner)
+    assert runner.ran == ["laplacian-n02-u001"]  # only the unit the killed run had not finished
+    assert "resuming 2 episodes" in capsys.readouterr().err
+    a = pq.read_table(tmp_path / "whole" / "episodes" / "n02.parquet").to_pylist()
+    b = pq.read_table(out / "episodes" / "n02.parquet").to_pylist()
+    assert a == b and again["full_success"] == whole["full_success"]
+    assert not list((out / "episodes" / "_units").glob("*"))  # merged into the team size's file, then removed

@@ -85,6 +85,15 @@ def write_atomic(location: str | Path, data: bytes) -> str:
     return str(location)
 
 
+def remove(location: str | Path) -> None:
+    """Delete the file at `location` if it is there."""
+    fs, path = resolve(location)
+    try:
+        fs.delete_file(path)
+    except FileNotFoundError:
+        pass
+
+
 def remove_stale_temporaries(folder: str | Path) -> int:
     """Delete temporary files a killed writer left in a local `folder`; returns how many."""
     fs, path = resolve(folder)

@@ -199,6 +199,25 @@ def episode_file(out: str, planner: str, n: int) -> str:
     return fs.join(out, "episodes", name)
 
 
+def unit_file(out: str, unit_key: str) -> str:
+    """Where a finished unit's episodes wait until their team size's file is written (episodes/_units/, which
+    readers of episodes/*.parquet never list): a killed evaluation resumes from its finished units."""
+    return fs.join(out, "episodes", "_units", f"{unit_key.replace('+', '-')}.parquet")
+
+
+def _reuse_unit(path: str, fps: list[str], episodes: list[int]) -> list[dict] | None:
+    """The rows of a unit finished earlier with the same config (any of `fps`) and episodes, else None."""
+    if not fs.exists(path):
+        return None
+    try:
+        meta = file_metadata(path)
+        if meta.get("fingerprint") in fps and meta.get("episodes") == episodes:
+            return read_episodes(path)
+    except (StoreError, OSError, ValueError):
+        pass
+    return None
+
+
 def make_tasks(cfg, maps: list[GridMap], n: int):
     tasks, skipped = [], []
     for e in range(cfg.eval.episodes):
@@ -341,7 +360,7 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
         raise MapError(cfg.eval.maps, "none of the maps could be used (reasons above)")
     atomic_write_table(maps_table(maps), fs.join(out, "maps", "maps.parquet"), "maps")
     done: dict[tuple[str, int], tuple[list, list]] = {}
-    units, skipped_by_n, todo = [], {}, []
+    units, skipped_by_n, todo, resumed, unit_keys = [], {}, [], {}, {}
     k = cfg.eval.unit_episodes
     for n in cfg.eval.robots:
         tasks = None
@@ -356,9 +375,19 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
                 for s in skipped_by_n[n]:
                     print(f"[N={n}] skipped episode {s['episode']}: {s['reason']}", file=sys.stderr)
             todo.append((p, n))
-            units += [Unit(f"{p}-n{n:02d}-u{j // k:03d}", {"n": n, "planner": p, "tasks": tasks[j:j + k]},
-                           size=len(tasks[j:j + k])) for j in range(0, len(tasks), k)]
-    rows_by: dict[tuple[str, int], list] = {key: [] for key in todo}
+            fps = fingerprints(cfg, n, p, weights_id(p))
+            for j in range(0, len(tasks), k):
+                unit = Unit(f"{p}-n{n:02d}-u{j // k:03d}", {"n": n, "planner": p, "tasks": tasks[j:j + k]},
+                            size=len(tasks[j:j + k]))
+                rows = _reuse_unit(unit_file(out, unit.key), fps, [e for e, _ in unit.payload["tasks"]])
+                unit_keys.setdefault((p, n), []).append(unit.key)
+                if rows is None:
+                    units.append(unit)
+                else:
+                    resumed.setdefault((p, n), []).extend(rows)
+    for (p, n), rows in resumed.items():
+        print(f"[N={n}] {p}: resuming {len(rows)} episodes of units finished earlier", file=sys.stderr)
+    rows_by: dict[tuple[str, int], list] = {key: list(resumed.get(key, [])) for key in todo}
     failures = []
     ctx = {"config": to_dict(cfg), "maps": [(m.map_id, m.occupancy, m.source) for m in maps], "model": blob,
            "gnn": gnn_blob}
@@ -393,6 +422,10 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
             key = (r.unit.payload["planner"], r.unit.payload["n"])
             if r.ok:
                 rows_by[key] += r.value
+                if r.value:  # kept until its team size's file is written: a killed run resumes from here
+                    atomic_write_table(episodes_table(r.value), unit_file(out, r.unit.key), "episodes",
+                                       {"fingerprint": fingerprint(cfg, key[1], key[0], weights_id(key[0])),
+                                        "episodes": [e for e, _ in r.unit.payload["tasks"]]})
             else:
                 failures.append({"unit": r.unit.key, "planner": key[0], "team_size": key[1], "error": r.error})
             seen["units"] += r.unit.size
@@ -405,6 +438,8 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
         if (p, n) not in failed and rows:  # a file with a failed unit is not stored: a re-run redoes it
             atomic_write_table(episodes_table(rows), episode_file(out, p, n), "episodes",
                                {"fingerprint": fingerprint(cfg, n, p, weights_id(p)), "skipped": skipped_by_n[n]})
+            for key in unit_keys[(p, n)]:  # the units' files are in it now
+                fs.remove(unit_file(out, key))
         done[(p, n)] = (rows, skipped_by_n[n])
     by_planner, table_rows = {}, []
     for p in planners:
