@@ -94,6 +94,16 @@ def remove(location: str | Path) -> None:
         pass
 
 
+def remove_empty_folder(location: str | Path) -> None:
+    """Delete a local folder if it is empty (object stores have no folders to leave behind)."""
+    fs, path = resolve(location)
+    if isinstance(fs, pafs.LocalFileSystem):
+        try:
+            os.rmdir(path)
+        except OSError:  # missing, or still holding files
+            pass
+
+
 def remove_stale_temporaries(folder: str | Path) -> int:
     """Delete temporary files a killed writer left in a local `folder`; returns how many."""
     fs, path = resolve(folder)

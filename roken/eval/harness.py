@@ -440,6 +440,7 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
                                {"fingerprint": fingerprint(cfg, n, p, weights_id(p)), "skipped": skipped_by_n[n]})
             for key in unit_keys[(p, n)]:  # the units' files are in it now
                 fs.remove(unit_file(out, key))
+            fs.remove_empty_folder(fs.join(out, "episodes", "_units"))
         done[(p, n)] = (rows, skipped_by_n[n])
     by_planner, table_rows = {}, []
     for p in planners:
