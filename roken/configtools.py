@@ -191,7 +191,7 @@ def _check_path(cls: type, dotted: str) -> None:
 # Fields added to a config section after evaluation folders were being written, in the order they were added,
 # each with the value that gives the behaviour from before it existed. A stored config, or an episode file's
 # fingerprint, from before a field existed reads as having it at that value, so that adding a field never stops
-# a finished evaluation from resuming (roken/eval/harness.py). Adding a config field that the episode
+# a finished evaluation from resuming (roken/eval/folder.py). Adding a config field that the episode
 # fingerprint hashes (a plan.* field): append it here; tests/test_resume_fields.py checks that none is missing.
 LATER_FIELDS: tuple[tuple[str, Any], ...] = (
     ("plan.noise", "fresh"),  # 2026-12-01

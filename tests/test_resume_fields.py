@@ -12,7 +12,7 @@ import pytest
 from roken.config import load_config
 from roken.configtools import LATER_FIELDS, with_later_fields, without_later_fields
 from roken.data.store import StoreError
-from roken.eval import harness
+from roken.eval import folder, harness
 from roken.plan.rollout import PlanConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -56,7 +56,7 @@ def _as_written_before_geo_inflate(out: Path, cfg, model_id: str) -> None:
     for k in since:
         del m["config"]["plan"][k]
     (out / "metrics.json").write_text(json.dumps(m))
-    d = harness._fingerprint_dict(cfg, "roken", model_id)
+    d = folder._fingerprint_dict(cfg, "roken", model_id)
     for k in since:
         del d["plan"][k]
     old_fp = hashlib.sha256(json.dumps([d, 2], sort_keys=True, default=str).encode()).hexdigest()[:16]
@@ -101,10 +101,7 @@ class _KilledAfterOneUnit(harness.InProcessRunner):
     """In-process runner that dies (as a Ctrl-C or a lost node would) once its first unit has come back."""
 
     def imap_unordered(self, fn_ref, ctx, units):
-        units = list(units)
-        self.ran = len(units)
-        it = super().imap_unordered(fn_ref, ctx, units)
-        yield next(it)
+        yield next(super().imap_unordered(fn_ref, ctx, units))
         raise KeyboardInterrupt
 
 

@@ -12,12 +12,12 @@ Output folder:
   episodes/{planner}-n{N:02d}.parquet             any other planner's ('+' written '-'), with its re-plans
   metrics.json                                    the first planner's metrics at the top level (as with one
                                                   planner), every planner's under `planners`, the config
-A (planner, team size) whose episode file exists with the same config fingerprint is reused (resume).
+A (planner, team size) whose episode file exists with the same config fingerprint is reused, and a killed run
+keeps its finished units under episodes/_units/ until then (resume; roken.eval.folder).
 """
 from __future__ import annotations
 
 import hashlib
-import json
 import sys
 import time
 from dataclasses import dataclass, field
@@ -25,10 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..configtools import LATER_FIELDS, from_dict, to_dict, with_later_fields, without_later_fields
+from ..configtools import from_dict, to_dict
 from ..data import fs
-from ..data.store import (StoreError, atomic_write_json, atomic_write_table, episode_record, episodes_table,
-                          file_metadata, maps_table, read_episodes, read_json)
+from ..data.store import atomic_write_json, atomic_write_table, episode_record, episodes_table, maps_table
 from ..expert.laplacian import ExpertConfig, LaplacianExpert
 from ..expert.gnn import GNNConfig
 from ..expert.sgg import SGGConfig
@@ -39,6 +38,8 @@ from ..world.loaders import MapError, find_map_files, load_map_file
 from ..world.maps import SPLITS, MapConfig, generate_map, split_size
 from ..world.tasks import TaskConfig, TaskError, sample_task
 from ..plan.rollout import PlanConfig
+from .folder import (episode_file, fingerprint, fingerprints, refuse_other_config, reuse, reuse_unit,  # noqa: F401
+                     rollout_config, unit_file)
 from .metrics import format_table, summarize
 
 PLANNERS = ("laplacian", "sgg", "gnn", "roken", "roken+safe", "roken+geodesic", "roken+guided",
@@ -112,110 +113,6 @@ def check(ec: EvalConfig) -> None:
         raise ValueError(f"--seed {ec.seed}: must be >= 0")
     if ec.unit_episodes < 1:
         raise ValueError(f"eval.unit_episodes={ec.unit_episodes}: must be >= 1")
-
-
-# plan fields that do not change a Roken episode (where and how fast it runs)
-PLAN_RUNTIME_KEYS = ("device", "batch_size", "record_plans")
-
-
-def _refuse_other_config(out: str, cfg, model_id: str = "") -> None:
-    """An evaluation folder made with another config, or (for Roken rows) another checkpoint or plan section,
-    is not overwritten silently (as generate.py refuses); other team sizes may be added to it."""
-    from ..data.build import changed_keys
-
-    path = fs.join(out, "metrics.json")
-    if not fs.exists(path):
-        return
-    try:
-        metrics = read_json(path)
-        old = metrics.get("config", {})
-    except (OSError, ValueError):
-        return
-    # a field the stored config lacks (added since) reads as the value from before it existed
-    old = with_later_fields(old)
-    new = with_later_fields(json.loads(json.dumps(to_dict(cfg), default=str)))
-    keys = ("map", "task", "expert", "eval")
-    changed = [c for c in changed_keys({k: old.get(k) for k in keys}, {k: new[k] for k in keys})
-               if not c.startswith(("eval.robots", "eval.planner"))]
-    old_model = (metrics.get("model") or {}).get("sha256")
-    if model_id and old_model:  # both evaluations ran Roken: the same weights and plan settings, or refuse
-        if old_model != model_id:
-            changed.append(f"checkpoint: sha256 {old_model} -> {model_id}")
-        plan_old = {k: v for k, v in (old.get("plan") or {}).items() if k not in PLAN_RUNTIME_KEYS + ("checkpoint",)}
-        plan_new = {k: v for k, v in new["plan"].items() if k not in PLAN_RUNTIME_KEYS + ("checkpoint",)}
-        changed += changed_keys(plan_old, plan_new, "plan.")
-    if changed:
-        raise StoreError(f"{out} holds an evaluation made with a different config ({'; '.join(changed[:6])}); "
-                         f"nothing was written. Use a new --out, or --overwrite to replace it")
-
-
-def fingerprint(cfg, n: int, planner: str = "laplacian", model_id: str = "") -> str:
-    """What an episode file depends on: tasks (map, task, eval), the planner's own settings (the expert's, or
-    Roken's plan section and weights); fields added since the first folders (configtools.LATER_FIELDS) enter it
-    only when they are not at the value from before they existed, so adding a field changes no fingerprint."""
-    return fingerprints(cfg, n, planner, model_id)[0]
-
-
-def fingerprints(cfg, n: int, planner: str = "laplacian", model_id: str = "") -> list[str]:
-    """The fingerprint an episode file is written with, then those under which code of each earlier field set
-    wrote the same episodes (LATER_FIELDS[k:] left out when at their old value; the last: every field hashed):
-    a file written by any of them is resumed."""
-    d = _fingerprint_dict(cfg, planner, model_id)
-    out = []
-    for since in range(len(LATER_FIELDS) + 1):
-        fp = hashlib.sha256(json.dumps([without_later_fields(d, since), n], sort_keys=True,
-                                       default=str).encode()).hexdigest()[:16]
-        if fp not in out:
-            out.append(fp)
-    return out
-
-
-def _fingerprint_dict(cfg, planner: str, model_id: str) -> dict:
-    d = to_dict(cfg)
-    d["eval"] = {k: v for k, v in d["eval"].items() if k not in ("robots", "planner")}
-    keys = ("map", "task", "expert", "eval")
-    if planner in ("sgg", "gnn"):
-        keys = keys + ("sgg",) + (("gnn",) if planner == "gnn" else ())
-        if planner == "gnn":
-            d["gnn"] = {k: v for k, v in d["gnn"].items() if k != "checkpoint"} | {"weights": model_id}
-    elif planner != "laplacian":
-        d["plan"] = rollout_config(cfg.plan, planner).__dict__ | {"checkpoint": model_id}
-        keys = keys + ("plan",)
-    return {k: v for k, v in d.items() if k in keys}
-
-
-def rollout_config(pc: PlanConfig, planner: str) -> PlanConfig:
-    """The plan section for one row: plain `roken` uses one candidate, `roken+X` selects with X."""
-    from dataclasses import replace
-
-    parts = planner.split("+")[1:]
-    guide = "guided" in parts
-    select = next((p for p in parts if p != "guided"), "none")
-    return replace(pc, select=select, guide=guide, candidates=pc.candidates if select != "none" else 1)
-
-
-def episode_file(out: str, planner: str, n: int) -> str:
-    name = f"n{n:02d}.parquet" if planner == "laplacian" else f"{planner.replace('+', '-')}-n{n:02d}.parquet"
-    return fs.join(out, "episodes", name)
-
-
-def unit_file(out: str, unit_key: str) -> str:
-    """Where a finished unit's episodes wait until their team size's file is written (episodes/_units/, which
-    readers of episodes/*.parquet never list): a killed evaluation resumes from its finished units."""
-    return fs.join(out, "episodes", "_units", f"{unit_key.replace('+', '-')}.parquet")
-
-
-def _reuse_unit(path: str, fps: list[str], episodes: list[int]) -> list[dict] | None:
-    """The rows of a unit finished earlier with the same config (any of `fps`) and episodes, else None."""
-    if not fs.exists(path):
-        return None
-    try:
-        meta = file_metadata(path)
-        if meta.get("fingerprint") in fps and meta.get("episodes") == episodes:
-            return read_episodes(path)
-    except (StoreError, OSError, ValueError):
-        pass
-    return None
 
 
 def make_tasks(cfg, maps: list[GridMap], n: int):
@@ -297,20 +194,6 @@ def eval_unit(ctx: dict, payload: dict, cache: dict) -> list[dict]:
     return [r for r in rows if r is not None]
 
 
-def _reuse(path: str, fps: list[str], n: int):
-    """(rows, skipped) of a team size finished earlier with the same config (any of `fps`), else None."""
-    if not fs.exists(path):
-        return None
-    try:
-        meta = file_metadata(path)
-        if meta.get("fingerprint") in fps:
-            print(f"[N={n}] reusing {path} (same config)", file=sys.stderr)
-            return read_episodes(path), meta.get("skipped", [])
-    except (StoreError, OSError, ValueError):
-        pass
-    return None
-
-
 def load_model(cfg) -> tuple[dict | None, str]:
     """The Roken checkpoint of an evaluation packed as bytes (shipped to every worker once), and its id."""
     if not uses_roken(cfg.eval):
@@ -348,7 +231,7 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
 
         gnn_blob = scorer_bytes(cfg.gnn.checkpoint)  # read once here: a missing scorer fails before any write
     if not overwrite:
-        _refuse_other_config(out, cfg, model_id)
+        refuse_other_config(out, cfg, model_id)
     planners = planner_names(cfg.eval, cfg.plan)
     weights_id = lambda p: gnn_blob["sha256"] if p == "gnn" else model_id  # noqa: E731  (the weights a row ran)
     runner = runner or InProcessRunner()
@@ -360,12 +243,13 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
         raise MapError(cfg.eval.maps, "none of the maps could be used (reasons above)")
     atomic_write_table(maps_table(maps), fs.join(out, "maps", "maps.parquet"), "maps")
     done: dict[tuple[str, int], tuple[list, list]] = {}
-    units, skipped_by_n, todo, resumed, unit_keys = [], {}, [], {}, {}
+    units, skipped_by_n, todo, resumed, unit_keys, fps = [], {}, [], {}, {}, {}
     k = cfg.eval.unit_episodes
     for n in cfg.eval.robots:
         tasks = None
         for p in planners:
-            reused = _reuse(episode_file(out, p, n), fingerprints(cfg, n, p, weights_id(p)), n)
+            fps[(p, n)] = fingerprints(cfg, n, p, weights_id(p))  # [0]: the one files are written with
+            reused = reuse(episode_file(out, p, n), fps[(p, n)], n)
             if reused is not None:
                 done[(p, n)] = reused
                 skipped_by_n.setdefault(n, reused[1])
@@ -375,11 +259,10 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
                 for s in skipped_by_n[n]:
                     print(f"[N={n}] skipped episode {s['episode']}: {s['reason']}", file=sys.stderr)
             todo.append((p, n))
-            fps = fingerprints(cfg, n, p, weights_id(p))
             for j in range(0, len(tasks), k):
                 unit = Unit(f"{p}-n{n:02d}-u{j // k:03d}", {"n": n, "planner": p, "tasks": tasks[j:j + k]},
                             size=len(tasks[j:j + k]))
-                rows = _reuse_unit(unit_file(out, unit.key), fps, [e for e, _ in unit.payload["tasks"]])
+                rows = reuse_unit(unit_file(out, unit.key), fps[(p, n)], [e for e, _ in unit.payload["tasks"]])
                 unit_keys.setdefault((p, n), []).append(unit.key)
                 if rows is None:
                     units.append(unit)
@@ -424,7 +307,7 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
                 rows_by[key] += r.value
                 if r.value:  # kept until its team size's file is written: a killed run resumes from here
                     atomic_write_table(episodes_table(r.value), unit_file(out, r.unit.key), "episodes",
-                                       {"fingerprint": fingerprint(cfg, key[1], key[0], weights_id(key[0])),
+                                       {"fingerprint": fps[key][0],
                                         "episodes": [e for e, _ in r.unit.payload["tasks"]]})
             else:
                 failures.append({"unit": r.unit.key, "planner": key[0], "team_size": key[1], "error": r.error})
@@ -437,7 +320,7 @@ def evaluate(cfg, out: str | Path, runner=None, overwrite: bool = False) -> dict
         rows.sort(key=lambda r: r["seed"])
         if (p, n) not in failed and rows:  # a file with a failed unit is not stored: a re-run redoes it
             atomic_write_table(episodes_table(rows), episode_file(out, p, n), "episodes",
-                               {"fingerprint": fingerprint(cfg, n, p, weights_id(p)), "skipped": skipped_by_n[n]})
+                               {"fingerprint": fps[(p, n)][0], "skipped": skipped_by_n[n]})
             for key in unit_keys[(p, n)]:  # the units' files are in it now
                 fs.remove(unit_file(out, key))
             fs.remove_empty_folder(fs.join(out, "episodes", "_units"))
