@@ -309,3 +309,47 @@ def test_rollout_goal_fields_use_the_inflated_distance(tiny):
         assert (b[ok] >= a[ok] - 1e-4).all() and (b[ok] > a[ok] + 1.0).any()
     with pytest.raises(ValueError, match="plan.geo_inflate"):
         RokenRollout(tiny, PlanConfig(geo_inflate=-1.0, device="cpu"), cfg.task, cfg.expert)
+
+
+def test_the_carried_plan_is_shifted_held_and_never_lost_to_worse_candidates(tiny):
+    """plan.keep_previous: the last chosen plan minus its executed moves, end point held, is one more candidate,
+    so a re-plan whose fresh candidates are all worse follows it instead of holding or backing off."""
+    from roken.plan.clusters import Cluster
+    from roken.plan.rollout import _Slot
+    from roken.plan.select import progress
+
+    cfg = load_config(None, ["eval.episodes=1"])
+    gm = generate_map(cfg.map, "eval", 0)
+    (_, task), = make_tasks(cfg, [gm], 3)[0]
+    H, r = tiny.cfg.horizon, 2
+    pc = PlanConfig(select="safe", candidates=2, device="cpu", replan_every=r, keep_previous=True)
+    ro = RokenRollout(tiny, pc, cfg.task, cfg.expert)
+    slot = _Slot(0, task, gm, ro)
+    # a clean plan: the team translates 0.02 m per move toward the goal (starts are clean, the steps are tiny)
+    toward = (task.goal - slot.q[task.leader]) / np.linalg.norm(task.goal - slot.q[task.leader])
+    slot.last = (slot.q[:, None] + 0.02 * np.arange(1, H + 1)[None, :, None] * toward).astype(np.float32)
+    c = Cluster(np.arange(3), np.array([False, True, False]), task.leader)
+    fresh = np.full((3, H, 2), 7.0, np.float32)
+    carried = slot.carried(c, fresh)
+    np.testing.assert_array_equal(carried[[0, 2], :H - r], slot.last[[0, 2], r:])
+    np.testing.assert_array_equal(carried[[0, 2], H - r:], np.repeat(slot.last[[0, 2], -1:], r, 1))
+    np.testing.assert_array_equal(carried[1], fresh[1])  # a given robot keeps this re-plan's plan
+    # the re-plan: the carried plan is clean, so the chosen one is clean and progresses at least as far
+    mine = np.concatenate([slot.q[:, None], slot.carried(Cluster(np.arange(3), np.zeros(3, bool), task.leader),
+                                                         fresh)], 1)[None]
+    assert violations(mine, slot.padded_known, None, cfg.task.d_obs_min, cfg.task.d_coll_min,
+                      cfg.task.comm_radius)[0] == 0
+    chosen = ro.plan_step([slot])[0]
+    path = np.concatenate([slot.q[:, None], chosen], 1)[None]
+    assert violations(path, slot.padded_known, None, cfg.task.d_obs_min, cfg.task.d_coll_min,
+                      cfg.task.comm_radius)[0] == 0 and slot.holds == 0
+    q = slot.q[task.leader]
+    assert progress(q, chosen[None, task.leader, -1], task.goal)[0] >= progress(q, mine[:, task.leader, -1],
+                                                                                 task.goal)[0] - 1e-9
+    np.testing.assert_array_equal(slot.last, chosen)  # remembered for the next re-plan
+    # without it the same re-plan has only the tiny model's fresh candidates, none of them clean: the team holds
+    off = RokenRollout(tiny, PlanConfig(select="safe", candidates=2, device="cpu", replan_every=r), cfg.task,
+                       cfg.expert)
+    held = _Slot(0, task, gm, off)
+    np.testing.assert_allclose(off.plan_step([held])[0], np.repeat(held.q[:, None], H, 1), atol=1e-4)
+    assert held.holds == 1 and not PlanConfig().keep_previous

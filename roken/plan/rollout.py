@@ -47,6 +47,7 @@ class PlanConfig:
     fallback: str = "hold"  # no clean candidate: "hold" (the re-planned robots stop: a safety stop) or "fewest"
     verify_moves: int = 0  # chunk moves that must be clean (0 = all; the rest only ranks candidates; select.py)
     verify_steps: bool = False  # also verify every simulator step of the executed moves (executed_points)
+    keep_previous: bool = False  # the last chosen plan, shifted by the executed moves, is one more candidate
     select_team: float = 0.0  # ranking adds this x the followers' mean progress to the leader's (0 = leader only)
     geo_inflate: float = 0.0  # > 0: free-space distances (goal term, geodesic ranking) cost more within this many m
     geo_inflate_weight: float = 2.0  # ... of an obstacle, up to 1 + this at its face (select.inflated_graph)
@@ -192,9 +193,12 @@ class RokenRollout:
                 s, c = slots[b], cl[b][stage]
                 m = len(c.members)
                 cand = out[j, :, :m]  # (G, m, H, 2)
+                if pc.keep_previous and pc.select != "none" and s.last is not None:
+                    cand = np.concatenate([cand, s.carried(c, cand[0])[None]], axis=0)  # (G + 1, m, H, 2)
+                G = len(cand)
                 g = 0
                 if pc.select != "none":
-                    start = np.broadcast_to(s.q[c.members][None, :, None], (self.G, m, 1, 2))
+                    start = np.broadcast_to(s.q[c.members][None, :, None], (G, m, 1, 2))
                     paths = np.concatenate([start, cand], axis=2)  # (G, m, H+1, 2)
                     others = np.flatnonzero(done[b] & ~np.isin(np.arange(N), c.members))
                     other_paths = np.concatenate([s.q[others][:, None], planned[b][others]], axis=1)
@@ -215,7 +219,7 @@ class RokenRollout:
                     # later clusters' robots where they stand: the moves executed before they re-plan keep clear
                     held = ~done[b] & ~np.isin(np.arange(N), c.members)
                     viol = viol + held_hits(paths[:, :, 1:pc.replan_every + 1], s.q[held], tc.d_coll_min)
-                    prog = np.zeros(self.G)
+                    prog = np.zeros(G)
                     field = s.geodesic if pc.select == "geodesic" else None
                     if c.leader >= 0 and not c.fixed[c.leader]:
                         prog = progress(s.q[s.task.leader], cand[:, c.leader, -1], s.task.goal, field)
@@ -232,6 +236,8 @@ class RokenRollout:
                 gen = c.members[~c.fixed]
                 planned[b][gen] = cand[g][~c.fixed]
                 done[b][gen] = True
+        for s, plan in zip(slots, planned):
+            s.last = plan.copy()
         return planned
 
     def outside(self, slots: list["_Slot"], clusters: list[Cluster], planned: list[np.ndarray],
@@ -311,6 +317,7 @@ class _Slot:
         self.gen = torch.Generator().manual_seed(self.seed)
         self.seen = None
         self.plans: list[np.ndarray] = []
+        self.last: np.ndarray | None = None  # the plan (N, H, 2) chosen at the last re-plan (plan.keep_previous)
         self.plan_steps: list[int] = []
         self.reached = False
         self.holds = 0  # re-plans where no candidate was clean and the team held position
@@ -347,6 +354,18 @@ class _Slot:
         self.subgoal_left -= 1
         return subgoal(self.geodesic, self.padded_known, self.q[self.task.leader], self.task.goal, pc.subgoal,
                        sight=pc.subgoal_sight)
+
+    def carried(self, c: Cluster, fresh: np.ndarray) -> np.ndarray:
+        """The last chosen plan of cluster c's robots with its executed moves dropped and its end point held
+        (m, H, 2): a candidate that keeps the team on a course already verified (plan.keep_previous, the warm start
+        of sampling-based MPC). At a 3 m gap the fresh candidates that move forward bunch the team at their late
+        points while those that are clean back off; the carried plan goes on through where it was clean. Given
+        robots keep this re-plan's plans (fresh: any candidate (m, H, 2) of it)."""
+        r = self.ro.pc.replan_every
+        prev = self.last[c.members]
+        out = np.concatenate([prev[:, r:], np.repeat(prev[:, -1:], r, axis=1)], axis=1)
+        out[c.fixed] = fresh[c.fixed]
+        return out.astype(fresh.dtype)
 
     @property
     def finished(self) -> bool:
