@@ -67,3 +67,49 @@ def expert_dataset(tmp_path_factory):
                              "dataset.team_sizes={2: 1, 3: 1, 4: 2, 6: 1}", "dataset.seed=3"])
     build_dataset(cfg, str(out), InProcessRunner())
     return str(out)
+
+
+_PIPELINES: dict = {}
+
+
+def cli(target: str, *args: str):
+    """Run `python pipelines/TARGET ARGS` (target "evaluate.py") or `python -m roken ARGS` (target "roken") in this
+    process and return what subprocess.run would: the same main(argv) the script's __main__ calls, with stdout
+    and stderr captured and an argparse exit turned into its code. A fresh interpreter spends 3-5 s importing
+    torch and Ray before the first line of a 0.5 s error path; that was most of the suite's subprocess time. Use
+    it for --workers 0 runs only: Ray workers, Ctrl-C and killed processes need a process of their own."""
+    import contextlib
+    import importlib.util
+    import io
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    if target == "roken":
+        from roken.cli import main
+    else:
+        if target not in _PIPELINES:
+            if str(root / "pipelines") not in sys.path:
+                sys.path.insert(0, str(root / "pipelines"))
+            spec = importlib.util.spec_from_file_location(f"pipeline_{target[:-3]}", root / "pipelines" / target)
+            mod = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(mod)
+            _PIPELINES[target] = mod
+        main = _PIPELINES[target].main
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = main(list(args))
+        except SystemExit as e:  # argparse's usage errors, and sys.exit inside a command
+            code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    return subprocess.CompletedProcess([target, *args], code or 0, out.getvalue(), err.getvalue())
+
+
+def in_process(cmd: list[str]):
+    """cli() for a command line written for subprocess: [python, .../pipelines/NAME.py, ...] or
+    [python, -m, roken, ...]."""
+    if cmd[1:3] == ["-m", "roken"]:
+        return cli("roken", *cmd[3:])
+    assert cmd[1].endswith(".py") and "pipelines" in cmd[1], cmd[:2]
+    return cli(cmd[1].rsplit("/", 1)[-1], *cmd[2:])

@@ -2,12 +2,12 @@
 metric recomputation, SGG keeps every constraint whenever its candidate search found a feasible topology, and
 the GNN scorer trains from simulator labels and learns them."""
 import json
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import cli, in_process
 
 from roken.config import load_config
 from roken.eval.harness import make_tasks
@@ -21,12 +21,11 @@ def test_sgg_and_gnn_write_valid_episodes_with_the_shared_metrics(tmp_path):
     out = tmp_path / "ev"
     cmd = [sys.executable, str(ROOT / "pipelines" / "evaluate.py"), "--planner", "laplacian,sgg,gnn", "--robots",
            "4", "--episodes", "4", "--maps", "val", "--workers", "0", "--out", str(out)]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    r = in_process(cmd)
     assert r.returncode == 0, r.stderr[-3000:]
     for name in ("sgg-n04.parquet", "gnn-n04.parquet"):
         assert (out / "episodes" / name).is_file()
-    v = subprocess.run([sys.executable, "-m", "roken", "validate", str(out)], capture_output=True, text=True,
-                       timeout=300)
+    v = cli("roken", "validate", str(out))
     assert v.returncode == 0, v.stdout + v.stderr
     from roken.data.store import read_run
     from roken.eval.metrics import episode_metrics, summarize
@@ -43,7 +42,7 @@ def test_sgg_and_gnn_write_valid_episodes_with_the_shared_metrics(tmp_path):
             assert again[k] == pytest.approx(metrics["planners"][p][k])
         steps = np.concatenate([np.diff(np.asarray(e["positions"]).reshape(-1, 4, 2), axis=0) for e in mine])
         assert np.linalg.norm(steps, axis=-1).max() <= 0.5 + 1e-5  # never faster than max_step
-    r2 = subprocess.run(cmd, capture_output=True, text=True, timeout=600)  # a re-run reuses every file
+    r2 = in_process(cmd)  # a re-run reuses every file
     assert r2.returncode == 0 and r2.stderr.count("reusing") == 3
 
 
@@ -66,8 +65,7 @@ def test_sgg_keeps_the_constraints_whenever_its_search_found_a_feasible_topology
 
 def test_gnn_scorer_trains_on_simulator_labels(tmp_path):
     out = tmp_path / "gnn"
-    r = subprocess.run([sys.executable, "-m", "roken", "train-gnn", "--out", str(out), "--tasks", "24", "--states",
-                        "4", "--steps", "600"], capture_output=True, text=True, timeout=600)
+    r = cli("roken", "train-gnn", "--out", str(out), "--tasks", "24", "--states", "4", "--steps", "600")
     assert r.returncode == 0, r.stderr[-2000:]
     s = json.loads((out / "summary.json").read_text())
     assert 0.05 < s["good_fraction"] < 0.95  # both kinds of candidate graph are in the data
@@ -77,7 +75,6 @@ def test_gnn_scorer_trains_on_simulator_labels(tmp_path):
     from roken.expert.gnn import load_scorer
 
     load_scorer(str(out))
-    bad = subprocess.run([sys.executable, str(ROOT / "pipelines" / "evaluate.py"), "--planner", "gnn", "--episodes",
-                          "1", "--workers", "0", "--out", str(tmp_path / "ev"), "--set",
-                          f"gnn.checkpoint={tmp_path / 'none'}"], capture_output=True, text=True, timeout=300)
+    bad = cli("evaluate.py", "--planner", "gnn", "--episodes", "1", "--workers", "0", "--out", str(tmp_path / "ev"),
+              "--set", f"gnn.checkpoint={tmp_path / 'none'}")
     assert bad.returncode == 2 and "train-gnn" in bad.stderr and not (tmp_path / "ev").exists()

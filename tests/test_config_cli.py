@@ -1,13 +1,9 @@
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
+from conftest import cli
 
 from roken.config import ConfigError, load_config
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_defaults_are_the_paper_values():
@@ -40,9 +36,9 @@ def test_config_errors_name_the_key(tmp_path, text, override, needle):
 
 def test_evaluate_command_end_to_end(tmp_path):
     out = tmp_path / "run"
-    cmd = [sys.executable, str(ROOT / "pipelines" / "evaluate.py"), "--planner", "laplacian", "--robots", "2,3",
-           "--episodes", "3", "--maps", "eval", "--out", str(out), "--set", "expert.batch_size=4"]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    args = ["--planner", "laplacian", "--robots", "2,3", "--episodes", "3", "--maps", "eval", "--out", str(out),
+            "--set", "expert.batch_size=4"]
+    r = cli("evaluate.py", *args)
     assert r.returncode == 0, r.stderr
     assert "full succ" in r.stdout and "laplacian" in r.stdout
     metrics = json.loads((out / "metrics.json").read_text())
@@ -61,22 +57,18 @@ def test_evaluate_command_end_to_end(tmp_path):
     for k in ("full_success", "reach", "connectivity"):
         assert again[k] == pytest.approx(metrics[k])
     # resume: the same command reuses the stored episodes
-    r2 = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    r2 = cli("evaluate.py", *args)
     assert r2.returncode == 0 and "reusing" in r2.stderr
     png = tmp_path / "ep.png"
-    r3 = subprocess.run([sys.executable, "-m", "roken", "plot", str(out), "--index", "1", "--out", str(png)],
-                        capture_output=True, text=True, timeout=120)
+    r3 = cli("roken", "plot", str(out), "--index", "1", "--out", str(png))
     assert r3.returncode == 0, r3.stderr
     assert png.stat().st_size > 10_000
 
 
 def test_evaluate_command_bad_input(tmp_path):
-    cmd = [sys.executable, str(ROOT / "pipelines" / "evaluate.py"), "--maps", str(tmp_path / "none"),
-           "--out", str(tmp_path / "o")]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    r = cli("evaluate.py", "--maps", str(tmp_path / "none"), "--out", str(tmp_path / "o"))
     assert r.returncode == 2 and "no map files found" in r.stderr
-    r = subprocess.run(cmd[:2] + ["--set", "eval.bogus=1", "--out", str(tmp_path / "o")],
-                       capture_output=True, text=True, timeout=120)
+    r = cli("evaluate.py", "--set", "eval.bogus=1", "--out", str(tmp_path / "o"))
     assert r.returncode == 2 and "bogus" in r.stderr
 
 
@@ -87,9 +79,7 @@ def test_external_folder_with_a_corrupt_map(tmp_path):
     np.save(tmp_path / "good.npy", good)
     (tmp_path / "broken.map").write_text("type octile\nheight 3\n")
     out = tmp_path / "run"
-    r = subprocess.run([sys.executable, str(ROOT / "pipelines" / "evaluate.py"), "--maps", str(tmp_path),
-                        "--robots", "2", "--episodes", "2", "--out", str(out)], capture_output=True, text=True,
-                       timeout=300)
+    r = cli("evaluate.py", "--maps", str(tmp_path), "--robots", "2", "--episodes", "2", "--out", str(out))
     assert r.returncode == 0, r.stderr
     metrics = json.loads((out / "metrics.json").read_text())
     assert [b["file"].endswith("broken.map") for b in metrics["bad_maps"]] == [True]

@@ -2,13 +2,12 @@
 picked from a rollout; a tiny model's round writes relabelled shards `roken validate` accepts, with `source`
 and `round`; a round interrupted after relabelling and resumed equals an uninterrupted one."""
 import copy
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from conftest import cli
 import torch
 from safetensors.torch import load_file
 
@@ -75,8 +74,7 @@ def test_a_round_writes_valid_relabelled_shards_and_resumes_exactly(expert_datas
     cfg = load_config(None, TINY)
     a = _run(cfg, model, expert_dataset, tmp_path / "a")
     data = tmp_path / "a" / "round-00" / "data"
-    r = subprocess.run([sys.executable, "-m", "roken", "validate", str(data)], capture_output=True, text=True,
-                       timeout=120)
+    r = cli("roken", "validate", str(data))
     assert r.returncode == 0 and "manifest finished" in r.stdout, r.stderr
     tab = pq.read_table(data / "episodes" / "relabel.parquet")
     assert tab.num_rows == a["rounds"][0]["states"] > 0

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
+from conftest import cli
 
 from roken.config import load_config
 from roken.data import fs
@@ -28,6 +29,8 @@ EXPECTED_IDS = {f"train-{i:06d}-e{k:02d}" for i in range(8) for k in range(3)}
 
 
 def run(args, env=None, timeout=300, **kw):
+    if "--local" not in args and env is None and not kw:  # in-process runs need no interpreter of their own
+        return cli("generate.py", *args)
     return subprocess.run(GENERATE + args, capture_output=True, text=True, timeout=timeout,
                           env={**os.environ, **(env or {})}, **kw)
 
@@ -58,7 +61,7 @@ def test_in_process_dataset_contract(reference):
     assert set(m["by_team_size"]) <= {str(n) for n in range(2, 9)}
     for s in m["shards"]:  # row counts in the manifest are the files' row counts
         assert pq.read_metadata(reference / s["episodes"]).num_rows == s["rows"]
-    r = subprocess.run([sys.executable, "-m", "roken", "validate", str(reference)], capture_output=True, text=True)
+    r = cli("roken", "validate", str(reference))
     assert r.returncode == 0 and "manifest complete, 8 shards" in r.stdout, r.stdout + r.stderr
 
 

@@ -1,11 +1,10 @@
 """Constraint-guided sampling: the spanning trees are minimal, the descent lowers the cost without moving given
 robots, and the roken+guided rows run under the harness."""
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import torch
+from conftest import cli
 from scipy.sparse.csgraph import minimum_spanning_tree
 
 from roken.config import load_config
@@ -85,10 +84,9 @@ def test_closed_form_gradient_matches_autograd_of_the_cost():
 
 
 def test_guided_rows_run_under_the_harness(tmp_path):
-    r = subprocess.run([sys.executable, str(ROOT / "pipelines" / "evaluate.py"), "--planner", "roken+guided",
-                        "--checkpoint", str(ROOT / "models" / "roken-small-mixed"), "--robots", "3", "--episodes", "2",
-                        "--num-maps", "2", "--steps", "3", "--guide-steps", "2", "--set", "plan.guide_iters=5",
-                        "--workers", "0", "--out", str(tmp_path / "ev")], capture_output=True, text=True, timeout=600)
+    r = cli("evaluate.py", "--planner", "roken+guided", "--checkpoint", str(ROOT / "models" / "roken-small-mixed"),
+            "--robots", "3", "--episodes", "2", "--num-maps", "2", "--steps", "3", "--guide-steps", "2",
+            "--set", "plan.guide_iters=5", "--workers", "0", "--out", str(tmp_path / "ev"))
     assert r.returncode == 0, r.stderr[-2000:]
     assert (tmp_path / "ev" / "episodes" / "roken-guided-n03.parquet").is_file()
     assert "roken+guided" in r.stdout

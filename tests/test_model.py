@@ -1,6 +1,5 @@
 """The Roken DiT, its loss and samplers: symmetry, masks, log-probabilities, caching, and that it learns."""
 import math
-from dataclasses import replace
 
 import numpy as np
 import pytest

@@ -1,10 +1,9 @@
 """The Roken planner: conditional mode, clustered rollout, partial observation, the closed loop, selection."""
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import cli
 import torch
 
 from roken.config import load_config
@@ -237,14 +236,11 @@ def test_team_progress_ranks_a_plan_that_brings_the_followers_along():
 
 
 def test_evaluate_refuses_a_team_larger_than_the_model_up_front(tmp_path):
-    r = subprocess.run([sys.executable, str(ROOT / "pipelines" / "evaluate.py"), "--planner", "roken",
-                        "--checkpoint", str(ROOT / "models" / "roken-small-mixed"), "--robots", "12",
-                        "--episodes", "1", "--out", str(tmp_path / "e"), "--workers", "0"],
-                       capture_output=True, text=True, timeout=120)
+    r = cli("evaluate.py", "--planner", "roken", "--checkpoint", str(ROOT / "models" / "roken-small-mixed"),
+            "--robots", "12", "--episodes", "1", "--out", str(tmp_path / "e"), "--workers", "0")
     assert r.returncode == 2 and "--cluster-size" in r.stderr and not (tmp_path / "e").exists()
-    r = subprocess.run([sys.executable, str(ROOT / "pipelines" / "evaluate.py"), "--planner", "roken",
-                        "--robots", "2", "--episodes", "1", "--out", str(tmp_path / "e"), "--workers", "0"],
-                       capture_output=True, text=True, timeout=120)
+    r = cli("evaluate.py", "--planner", "roken", "--robots", "2", "--episodes", "1", "--out", str(tmp_path / "e"),
+            "--workers", "0")
     assert r.returncode == 2 and "--checkpoint" in r.stderr and not (tmp_path / "e").exists()
 
 

@@ -11,6 +11,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 import torch
+from conftest import cli
 from safetensors.torch import load_file
 
 from roken.config import load_config
@@ -32,8 +33,7 @@ def spec(*extra) -> PretrainSpec:
 
 
 def run_pipeline(*args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(ROOT / "pipelines" / "pretrain.py"), *args], capture_output=True,
-                          text=True, timeout=300)
+    return cli("pretrain.py", *args)
 
 
 def test_loop_overfits_a_few_samples(expert_dataset, tmp_path):
@@ -193,11 +193,9 @@ def test_goals_reach_far_and_subteams_are_clusters(expert_dataset):
 def test_shard_runs_equal_one_run_byte_for_byte(tmp_path):
     sets = ["--set", "dataset.maps_per_unit=2", "--set", "dataset.team_sizes={2: 1, 3: 1}"]
     common = ["--maps", "train", "--num-maps", "6", "--episodes-per-map", "2", "--workers", "0", *sets]
-    gen = [sys.executable, str(ROOT / "pipelines" / "generate.py")]
-    subprocess.run(gen + common + ["--out", str(tmp_path / "one")], check=True, capture_output=True, timeout=300)
+    assert cli("generate.py", *common, "--out", str(tmp_path / "one")).returncode == 0
     for k in range(2):
-        r = subprocess.run(gen + common + ["--out", str(tmp_path / "two"), "--shard", f"{k}/2"], capture_output=True,
-                           text=True, timeout=300)
+        r = cli("generate.py", *common, "--out", str(tmp_path / "two"), "--shard", f"{k}/2")
         assert r.returncode == 0, r.stderr
     files = sorted(p.relative_to(tmp_path / "one") for p in (tmp_path / "one").rglob("*.parquet"))
     assert len(files) == 6

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import cli
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = ROOT / "models" / "roken-small-mixed"
@@ -16,8 +17,7 @@ TINY = ["--preset", "tiny", "--batch-size", "4", "--set", "train.loader_workers=
 
 
 def run(script, *args):
-    return subprocess.run([sys.executable, str(ROOT / "pipelines" / script), *args], capture_output=True, text=True,
-                          timeout=300)
+    return cli(script, *args)
 
 
 def test_readme_has_the_two_setup_commands_and_ci_runs_the_first():
@@ -76,12 +76,10 @@ def test_checkpoint_errors_come_before_anything_is_written(tmp_path, case):
 
 
 def test_export_into_itself_is_refused_and_cards_keep_their_sections(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "roken", "export", str(SHIPPED), str(SHIPPED)], capture_output=True,
-                       text=True, timeout=120)
+    r = cli("roken", "export", str(SHIPPED), str(SHIPPED))
     assert r.returncode == 2 and "is the source" in r.stderr
     out = tmp_path / "copy"
-    r = subprocess.run([sys.executable, "-m", "roken", "export", str(SHIPPED), str(out)], capture_output=True,
-                       text=True, timeout=120)
+    r = cli("roken", "export", str(SHIPPED), str(out))
     assert r.returncode == 0, r.stderr
     old = [x for x in (SHIPPED / "MODEL_CARD.md").read_text().splitlines() if x.startswith("## ")]
     new = (out / "MODEL_CARD.md").read_text()
@@ -91,7 +89,7 @@ def test_export_into_itself_is_refused_and_cards_keep_their_sections(tmp_path):
 def test_quickstart_refuses_a_folder_it_did_not_make(tmp_path):
     (tmp_path / "report.md").write_text("mine")
     r = subprocess.run([sys.executable, "-m", "roken", "quickstart", "--out", str(tmp_path), "--workers", "0"],
-                       capture_output=True, text=True, timeout=120)
+                       capture_output=True, text=True, timeout=120)  # `roken quickstart` runs the script in a process
     assert r.returncode == 2 and "did not make" in r.stderr
     assert (tmp_path / "report.md").read_text() == "mine"
 
@@ -148,10 +146,10 @@ def test_posttraining_ctrl_c_and_a_finished_rerun_keep_the_summary(expert_datase
     r = _interrupt(cmd + ["--iterations", "1000"], lambda: any(out.glob("checkpoint-*/config.json")))
     assert r.returncode == 130 and "re-run the same command to resume" in r.stderr, r.stderr[-2000:]
     assert "Traceback" not in r.stderr
-    done = subprocess.run(cmd + ["--iterations", "2"], capture_output=True, text=True, timeout=300)
+    done = cli("posttrain.py", *cmd[2:], "--iterations", "2")
     assert done.returncode == 0, done.stderr[-2000:]
     before = (out / "summary.json").read_bytes()
-    again = subprocess.run(cmd + ["--iterations", "2"], capture_output=True, text=True, timeout=300)
+    again = cli("posttrain.py", *cmd[2:], "--iterations", "2")
     assert again.returncode == 0 and "checkpoint:" in again.stdout, again.stderr[-2000:]
     assert (out / "summary.json").read_bytes() == before
 

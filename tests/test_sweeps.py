@@ -1,10 +1,10 @@
 """The sweeps: every setting evaluates each asked Roken row on the same tasks, and the tables name them."""
 import json
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from conftest import in_process
 
 from roken.eval.sweeps import line_name, markdown, settings
 
@@ -34,11 +34,11 @@ def test_a_sweep_runs_two_rows_on_the_same_tasks_and_resumes(tmp_path):
            "--set", "eval.num_maps=1", "--set", "plan.steps=2", "--set", "plan.guide_iters=1",
            "--set", "plan.guide_final_iters=2", "--set", "expert.step_limit_factor=0.2", "--workers", "0",
            "--out", str(tmp_path / "sw")]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    r = in_process(cmd)
     assert r.returncode == 0, r.stderr[-2000:]
     rows = json.loads((tmp_path / "sw" / "sensing.json").read_text())["rows"]
     assert sorted({(x["setting"], x["planner"]) for x in rows}) == sorted(
         (s, p) for s in ("whole map", "sensing 20 m", "sensing 10 m", "sensing 5 m") for p in ("roken", "roken+guided+safe"))
     assert (tmp_path / "sw" / "sensing.png").is_file() and "roken+guided+safe" in r.stdout
-    again = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    again = in_process(cmd)
     assert again.returncode == 0 and again.stdout == r.stdout, "a finished sweep re-runs as a no-op"

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import cli
 
 from roken.data.store import atomic_write_json
 from roken.world.loaders import MapError, read_npy
@@ -15,8 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def run(script, *args):
-    return subprocess.run([sys.executable, str(ROOT / "pipelines" / script), *args], capture_output=True, text=True,
-                          timeout=300)
+    return cli(script, *args)
 
 
 @pytest.mark.parametrize("script,args,message", [
@@ -44,8 +44,7 @@ def test_evaluation_of_another_config_is_refused_and_metrics_are_strict_json(tmp
     assert (tmp_path / "ev" / "metrics.json").read_text() == before
     assert run("evaluate.py", *base[:2], "--episodes", "3", *base[4:], "--overwrite").returncode == 0
     assert json.loads((tmp_path / "ev" / "metrics.json").read_text())["episodes"] == 3
-    r = subprocess.run([sys.executable, "-m", "roken", "validate", str(tmp_path / "ev")], capture_output=True,
-                       text=True, timeout=120)
+    r = cli("roken", "validate", str(tmp_path / "ev"))
     assert r.returncode == 0 and "evaluation folder" in r.stdout
 
 
@@ -69,8 +68,7 @@ def test_plot_checks_its_flags_and_says_why_an_episode_failed(expert_dataset, tm
     from roken.world.tasks import TaskConfig
 
     def plot(*args):
-        return subprocess.run([sys.executable, "-m", "roken", "plot", expert_dataset, *args], capture_output=True,
-                              text=True, timeout=120)
+        return cli("roken", "plot", expert_dataset, *args)
     for args, msg in [(["--index", "99999"], "--index 99999"), (["--index", "-1"], "--index -1"),
                       (["--instants", "99999"], "--instants 99999"), (["--instants", "0"], "--instants 0")]:
         r = plot(*args, "--out", str(tmp_path / "p.png"))
