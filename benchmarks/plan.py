@@ -15,7 +15,8 @@ last (plan.guide_iters) and at the last (plan.guide_final_iters); `default` = th
 first implementation's schedule; the known-map fields are computed once per episode and not timed. Throughput: closed-loop episodes/s of the shipped model on the same
 evaluation tasks with continuous batching (plan.batch_size episodes per model call) vs one episode at a time.
 Verification: verified selection's check of G candidates (4 robots, H = 16) on the known map, at the plan's
-points and, with plan.verify_steps, at every simulator step of the executed moves (rollout.executed_points).
+points and, with plan.verify_steps, at every simulator step of the executed moves (rollout.executed_points); G = 9
+is G = 8 with the last plan carried as one more candidate (plan.keep_previous).
 """
 from __future__ import annotations
 
@@ -121,7 +122,7 @@ def main(argv=None):
     rng = np.random.default_rng(0)
     if not a.rollout_only:
         print(f"{'verified selection, 4 robots':<30}{'candidates':>11}{'ms / re-plan':>14}")
-        for G in (1, 8, 32):
+        for G in (1, 8, 9, 32):  # 9: G = 8 and the carried plan of plan.keep_previous
             for steps in (False, True):
                 ms = verify_cost(G, max(a.repeat, 20), rng, steps) * 1e3
                 print(f"{'points + executed steps' if steps else 'planned points':<30}{G:>11}{ms:>14.2f}")
