@@ -206,7 +206,7 @@ LATER_FIELDS: tuple[tuple[str, Any], ...] = (
     ("plan.geo_inflate", 0.0),
     ("plan.geo_inflate_weight", 2.0),
     ("plan.verify_steps", False),  # 2026-12-04
-    ("plan.keep_previous", False),
+    ("plan.keep_previous", False),  # 2026-12-05
 )
 
 

@@ -72,6 +72,23 @@ def expert_dataset(tmp_path_factory):
 _PIPELINES: dict = {}
 
 
+def load_pipeline(name: str):
+    """pipelines/NAME.py as a module (loaded once per test session; the pipelines import `common` beside them)."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    if name not in _PIPELINES:
+        folder = Path(__file__).resolve().parents[1] / "pipelines"
+        if str(folder) not in sys.path:
+            sys.path.insert(0, str(folder))
+        spec = importlib.util.spec_from_file_location(f"pipeline_{name}", folder / f"{name}.py")
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        _PIPELINES[name] = mod
+    return _PIPELINES[name]
+
+
 def cli(target: str, *args: str):
     """Run `python pipelines/TARGET ARGS` (target "evaluate.py") or `python -m roken ARGS` (target "roken") in this
     process and return what subprocess.run would: the same main(argv) the script's __main__ calls, with stdout
@@ -79,24 +96,13 @@ def cli(target: str, *args: str):
     torch and Ray before the first line of a 0.5 s error path; that was most of the suite's subprocess time. Use
     it for --workers 0 runs only: Ray workers, Ctrl-C and killed processes need a process of their own."""
     import contextlib
-    import importlib.util
     import io
     import subprocess
-    import sys
-    from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1]
     if target == "roken":
         from roken.cli import main
     else:
-        if target not in _PIPELINES:
-            if str(root / "pipelines") not in sys.path:
-                sys.path.insert(0, str(root / "pipelines"))
-            spec = importlib.util.spec_from_file_location(f"pipeline_{target[:-3]}", root / "pipelines" / target)
-            mod = importlib.util.module_from_spec(spec)
-            spec.loader.exec_module(mod)
-            _PIPELINES[target] = mod
-        main = _PIPELINES[target].main
+        main = load_pipeline(target.removesuffix(".py")).main
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         try:

@@ -1,27 +1,18 @@
 """cluster/ checked offline: the launcher YAML against the schema shipped in the Ray wheel, the KubeRay
 RayJobs' structure, token auth and entrypoints (parsed by the pipelines' own argument parsers)."""
-import importlib.util
 import re
 import shlex
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import yaml
+from conftest import load_pipeline
 
 from roken.config import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 CLUSTER = ROOT / "cluster"
-
-
-def load_pipeline(name):
-    sys.path.insert(0, str(ROOT / "pipelines"))
-    spec = importlib.util.spec_from_file_location(f"pipeline_{name}", ROOT / "pipelines" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def test_launcher_yaml_passes_rays_own_validation():

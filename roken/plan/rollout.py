@@ -236,8 +236,9 @@ class RokenRollout:
                 gen = c.members[~c.fixed]
                 planned[b][gen] = cand[g][~c.fixed]
                 done[b][gen] = True
-        for s, plan in zip(slots, planned):
-            s.last = plan.copy()
+        if pc.keep_previous:  # the next re-plan's carried candidate (_Slot.carried)
+            for s, plan in zip(slots, planned):
+                s.last = plan.copy()
         return planned
 
     def outside(self, slots: list["_Slot"], clusters: list[Cluster], planned: list[np.ndarray],
