@@ -197,3 +197,47 @@ def test_bad_team_sizes_are_rejected(tmp_path):
     r = run(["--out", str(tmp_path / "o"), "--workers", "0", "--set", "dataset.team_sizes={4: 0}"])
     assert r.returncode == 2 and "dataset.team_sizes" in r.stderr
     assert not (tmp_path / "o").exists()  # refused before anything was written
+
+
+def test_restart_every_keeps_markov_labels(tmp_path):
+    """dataset.restart_every: the expert restarted from every k-th step of each kept episode, each continuation
+    the expert's own run from that state, and every training chunk starting at an episode's first step."""
+    import numpy as np
+
+    from roken.data.build import fingerprint
+    from roken.data.samples import EpisodeBank
+    from roken.expert.laplacian import LaplacianExpert
+    from roken.world.tasks import Task
+
+    out = tmp_path / "ds"
+    args = ["--maps", "train", "--num-maps", "2", "--episodes-per-map", "2", "--set", "dataset.team_sizes={3: 1}"]
+    r = run(args + ["--set", "dataset.restart_every=40", "--out", str(out), "--workers", "0"])
+    assert r.returncode == 0, r.stderr
+    maps, eps = read_run(out)
+    recorded = {e["episode_id"]: e for e in eps if re.fullmatch(r"train-\d{6}-e\d\d", e["episode_id"])}
+    restarts = {e["episode_id"]: e for e in eps if e["episode_id"] not in recorded}
+    assert len(recorded) == 4 and restarts and all(e["sample_until"] == 1 for e in eps)
+    tc = load_config(None, []).task
+    for eid, e in recorded.items():  # a restart at every 40th step before the leader comes within eps_goal
+        P = np.asarray(e["positions"]).reshape(-1, e["num_robots"], 2)
+        near = np.flatnonzero(np.linalg.norm(P[:, e["leader"]] - e["goal"], axis=-1) <= tc.eps_goal)
+        want = {f"{eid}-r{t:04d}" for t in range(40, int(near[0]), 40)}
+        assert {k for k in restarts if k.startswith(eid + "-")} == want
+    eid, e = sorted(restarts.items())[0]
+    base = recorded[eid.rsplit("-", 1)[0]]
+    t = int(eid.rsplit("-r", 1)[1])
+    P = np.asarray(base["positions"]).reshape(-1, base["num_robots"], 2)
+    Q = np.asarray(e["positions"]).reshape(-1, e["num_robots"], 2)
+    assert np.allclose(Q[0], P[t], atol=1e-5) and e["leader"] == base["leader"]
+    cfg = load_config(None, [])
+    (_, again), = LaplacianExpert(cfg.expert, cfg.task).run([Task(e["map_id"], P[t].astype(np.float64),
+                                                                 np.asarray(e["goal"], np.float64), e["leader"])], maps)
+    assert np.allclose(again.positions[:65], Q[:65], atol=1e-3)  # the expert's answer to the positions alone
+    r = cli("roken", "validate", str(out))
+    assert r.returncode == 0, r.stdout + r.stderr
+    episodes = read_table(str(out), "episodes")
+    bank = EpisodeBank.from_arrow(episodes, read_table(str(out), "maps"))
+    assert bank.sample_until is not None and (bank.sample_until == 1).all()
+    # the field's default leaves the fingerprint of datasets made before it (e.g. the model cards' train4)
+    old = load_config(None, ["dataset.num_maps=1500", "dataset.episodes_per_map=10", "dataset.team_sizes={4: 1}"])
+    assert fingerprint(old) == "d087d934ef9745d5"

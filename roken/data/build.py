@@ -26,6 +26,8 @@ WORKER_FN = "roken.data.generation:generate_unit"
 def fingerprint(cfg) -> str:
     """Hash of everything that shapes the episodes (not of how many workers made them)."""
     d = {k: v for k, v in to_dict(cfg).items() if k in ("map", "task", "expert", "dataset")}
+    if d["dataset"].get("restart_every") == 0:  # added 2026-12-06: datasets made before keep their fingerprint
+        del d["dataset"]["restart_every"]
     return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 

@@ -24,7 +24,7 @@ from ..expert.laplacian import ExpertConfig, LaplacianExpert
 from ..world.grid import GridMap
 from ..world.loaders import MapError, find_map_files, load_map_file
 from ..world.maps import SPLITS, MapConfig, generate_map, split_size
-from ..world.tasks import TaskConfig, TaskError, sample_task
+from ..world.tasks import Task, TaskConfig, TaskError, check_start, sample_task
 from . import fs
 from .store import StoreError, atomic_write_table, episode_record, episodes_table, file_metadata, maps_table
 
@@ -44,6 +44,13 @@ class DatasetConfig:
     maps_per_unit: int = 20  # maps per work unit and shard: 200 episodes, so each team size gets a real batch
     seed: int = 0
     keep_failed: bool = False  # keep episodes the expert failed (flagged success=false) in the shards
+    # Markov labels (README "Markov labels"): the expert's recorded chunk at step t depends on its hidden state
+    # (inertia, spanning-tree hysteresis, reference progress), not only on the positions a model sees; restarted
+    # from the same positions it moves 0.45 m differently over the executed moves. With restart_every = k > 0 the
+    # expert is also restarted from every k-th step of each kept episode (before its leader reaches the goal),
+    # each continuation is kept as an episode, and training chunks start only at an episode's first step
+    # (sample_until = 1): every label is then the expert's answer to the positions alone. 0 = off (the paper).
+    restart_every: int = 0
 
 
 def check(dc: DatasetConfig) -> None:
@@ -51,6 +58,9 @@ def check(dc: DatasetConfig) -> None:
         raise ValueError(f"--num-maps {dc.num_maps}: must be >= 1; omit it to use every map of the split")
     if dc.seed < 0:
         raise ValueError(f"--seed {dc.seed}: must be >= 0")
+    if dc.restart_every < 0:
+        raise ValueError(f"dataset.restart_every={dc.restart_every}: must be >= 0 (0 = off, k = restart the expert "
+                         f"from every k-th step, e.g. 40)")
     if dc.episodes_per_map < 1 or dc.maps_per_unit < 1:
         raise ValueError("dataset.episodes_per_map and dataset.maps_per_unit must be >= 1")
     if not dc.team_sizes or any(n < 1 or w < 0 for n, w in dc.team_sizes.items()) \
@@ -167,11 +177,42 @@ def generate_unit(ctx: dict, payload: dict, cache: dict) -> dict:
             if row["success"] or dc.keep_failed:
                 stats[2] += 1
                 rows.append(row)
+    restarts = restart_rows(rows, by_id, expert, cfg.task, dc.restart_every) if dc.restart_every > 0 else []
+    if dc.restart_every > 0:
+        rows = [r | {"sample_until": 1} for r in rows]
+    rows += [r for r in restarts if r["success"] or dc.keep_failed]
     rows.sort(key=lambda r: r["episode_id"])
     summary = {"unit": key, "maps": len(maps), "episodes": len(rows), "by_team_size": by_n, "steps": steps,
                "bad_maps": bad, "skipped": skipped}
+    if dc.restart_every > 0:
+        summary["restarts"] = {"states": len(restarts), "succeeded": sum(bool(r["success"]) for r in restarts)}
     maps_path, ep_path = shard_paths(out, key)
     atomic_write_table(maps_table(maps), maps_path, "maps", {"fingerprint": ctx["fingerprint"]})
     atomic_write_table(episodes_table(rows), ep_path, "episodes",
                        {"fingerprint": ctx["fingerprint"], "unit": summary})
     return summary
+
+
+def restart_rows(rows: list[dict], maps: dict[str, GridMap], expert: LaplacianExpert, tc: TaskConfig,
+                 every: int) -> list[dict]:
+    """The expert restarted from every `every`-th step of each episode in `rows`, before its leader first comes
+    within eps_goal of the goal; each continuation (to the goal or the step limit) as an episode row with id
+    "{episode_id}-r{t:04d}" and sample_until = 1. A state the expert cannot start from is skipped (check_start)."""
+    groups: dict[int, list[tuple[str, Task]]] = {}
+    for r in rows:
+        P = np.asarray(r["positions"], np.float64)
+        goal, leader = np.asarray(r["goal"], np.float64), int(r["leader"])
+        near = np.flatnonzero(np.linalg.norm(P[:, leader] - goal, axis=-1) <= tc.eps_goal)
+        end = int(near[0]) if len(near) else len(P) - 1
+        for t in range(every, end, every):
+            if check_start(maps[r["map_id"]], P[t], tc) is None:
+                task = Task(r["map_id"], P[t].copy(), goal.copy(), leader, seed=int(r["seed"]))
+                groups.setdefault(P.shape[1], []).append((f"{r['episode_id']}-r{t:04d}", task))
+    out = []
+    for n in sorted(groups):  # one expert call per team size
+        group = groups[n]
+        for i, ep in expert.run([t for _, t in group], maps):
+            episode_id, task = group[i]
+            out.append(episode_record(episode_id, "laplacian", task, maps[task.map_id], ep.positions, tc, task.seed)
+                       | {"sample_until": 1})
+    return out
