@@ -207,6 +207,8 @@ LATER_FIELDS: tuple[tuple[str, Any], ...] = (
     ("plan.geo_inflate_weight", 2.0),
     ("plan.verify_steps", False),  # 2026-12-04
     ("plan.keep_previous", False),  # 2026-12-05
+    ("dataset.restart_every", 0),  # 2026-12-06
+    ("expert.warm_start", False),
 )
 
 

@@ -40,6 +40,18 @@ def test_expert_is_deterministic(mc, tc):
         np.testing.assert_array_equal(x.positions, y.positions)
 
 
+def test_warm_start_takes_the_first_command_as_the_previous_step(mc, tc):
+    # expert.warm_start: the first step is the undamped command (as with no inertia), from rest it is damped;
+    # batch 3 < 4 tasks: a refilled slot starts warm too
+    def first_steps(**kw):
+        _, _, eps = _run(mc, tc, 3, range(4), ExpertConfig(batch_size=3, smooth_window=1, **kw))
+        return np.stack([e.positions[1] - e.positions[0] for e in eps])
+
+    warm, undamped, rest = first_steps(warm_start=True), first_steps(inertia=0.0), first_steps()
+    np.testing.assert_allclose(warm, undamped, atol=1e-5)
+    assert np.linalg.norm(rest, axis=-1).mean() < 0.75 * np.linalg.norm(warm, axis=-1).mean()
+
+
 def test_single_robot_and_large_team(mc, tc):
     tasks, maps, eps = _run(mc, tc, 1, range(2))
     assert all(e.reached for e in eps)

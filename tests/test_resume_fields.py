@@ -50,15 +50,15 @@ def _cfg(*sets):
 def _as_written_before_geo_inflate(out: Path, cfg, model_id: str) -> None:
     """Rewrite `out` as the code of 2026-12-03 (before plan.geo_inflate) wrote it: its metrics.json config
     without the fields added since, the episode file's fingerprint hashed without them (as that code did)."""
-    names = [k.split(".", 1)[1] for k, _ in LATER_FIELDS]
-    since = names[names.index("geo_inflate"):]  # geo_inflate and every plan field added after it
+    later = [k for k, _ in LATER_FIELDS]
+    since = [k.split(".", 1) for k in later[later.index("plan.geo_inflate"):]]  # geo_inflate and every field after it
     m = json.loads((out / "metrics.json").read_text())
-    for k in since:
-        del m["config"]["plan"][k]
+    for section, key in since:
+        m["config"].get(section, {}).pop(key, None)
     (out / "metrics.json").write_text(json.dumps(m))
     d = folder._fingerprint_dict(cfg, "roken", model_id)
-    for k in since:
-        del d["plan"][k]
+    for section, key in since:
+        d.get(section, {}).pop(key, None)
     old_fp = hashlib.sha256(json.dumps([d, 2], sort_keys=True, default=str).encode()).hexdigest()[:16]
     path = out / "episodes" / "roken-n02.parquet"
     table = pq.read_table(path)

@@ -13,7 +13,7 @@ import sys
 import time
 from pathlib import Path
 
-from ..configtools import to_dict
+from ..configtools import to_dict, without_later_fields
 from ..progress import Progress
 from ..units import Unit
 from . import fs
@@ -26,8 +26,7 @@ WORKER_FN = "roken.data.generation:generate_unit"
 def fingerprint(cfg) -> str:
     """Hash of everything that shapes the episodes (not of how many workers made them)."""
     d = {k: v for k, v in to_dict(cfg).items() if k in ("map", "task", "expert", "dataset")}
-    if d["dataset"].get("restart_every") == 0:  # added 2026-12-06: datasets made before keep their fingerprint
-        del d["dataset"]["restart_every"]
+    d = without_later_fields(d)  # fields added since at their old value: datasets made before keep their fingerprint
     return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 

@@ -55,6 +55,10 @@ class ExpertConfig:
     pull_hops: int = 24  # cells of the geodesic path considered for the look-ahead target
     pull_refresh: int = 12  # steps a pull target is reused
     inertia: float = 0.5  # fraction of the previous step kept in the next one
+    # The first step's "previous step": 0 starts the team from rest (a task's start); True takes the first command
+    # itself, so an expert restarted mid-motion moves at once at the speed it would have kept (restarted labels
+    # without the ramp from rest, README "Markov labels")
+    warm_start: bool = False
     margin_obs: float = 0.08  # safety filter margins on top of d_obs_min / d_coll_min
     margin_coll: float = 0.08
     step_limit_factor: float = 3.0  # episode step limit = factor * A* length / max_step + extra
@@ -203,7 +207,8 @@ class LaplacianExpert:
             lstep = np.minimum(tc.max_step * np.minimum(mix_n, 1.0), dist_t)  # do not overshoot the goal
             v[sl, st.leader] = mix / np.maximum(mix_n, 1e-12)[:, None] * lstep[:, None]
             # -- inertia damps the period-2 chatter of opposing fields, then the safety filter
-            v = (1.0 - cfg.inertia) * v + cfg.inertia * st.v_prev
+            prev = np.where((st.t == 0)[:, None, None], v, st.v_prev) if cfg.warm_start else st.v_prev
+            v = (1.0 - cfg.inertia) * v + cfg.inertia * prev
             step = self._filter(q, v, obs_grad, padded, st.leader)
             st.v_prev = step
             step[~active] = 0.0
