@@ -76,9 +76,10 @@ def main() -> None:
         lead = np.zeros(d.shape[::2], bool)
         lead[np.arange(len(starts)), [s.leader for s in starts]] = True  # (S, N)
         ex = d[:, :E].mean(1)  # (S, N)
+        first = np.mean([np.linalg.norm(again[j].positions[min(I, len(again[j].positions) - 1)] - s.starts,
+                                        axis=-1).mean() for j, s in enumerate(starts)])
         print(f"{name:<38}{ex.mean():>12.3f}{np.median(d[:, :E]):>8.3f}{ex[lead].mean():>8.3f}{ex[~lead].mean():>10.3f}"
-              f"{d[:, 3].mean():>9.3f}{d[:, H - 1].mean():>9.3f}"
-              f"{np.mean([np.linalg.norm(again[j].positions[min(I, len(again[j].positions) - 1)] - s.starts, axis=-1).mean() for j, s in enumerate(starts)]):>8.3f}")
+              f"{d[:, 3].mean():>9.3f}{d[:, H - 1].mean():>9.3f}{first:>8.3f}")
     print(f"({time.perf_counter() - t0:.0f} s) distances in metres between the recorded and the restarted expert's "
           f"chunk points, mean over robots and states; move 1: mean length of the first chunk move")
 

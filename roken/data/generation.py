@@ -46,7 +46,7 @@ class DatasetConfig:
     keep_failed: bool = False  # keep episodes the expert failed (flagged success=false) in the shards
     # Markov labels (README "Markov labels"): the expert's recorded chunk at step t depends on its hidden state
     # (inertia, spanning-tree hysteresis, reference progress), not only on the positions a model sees; restarted
-    # from the same positions it moves 0.45 m differently over the executed moves. With restart_every = k > 0 the
+    # from the same positions it moves 0.49 m differently over the executed moves. With restart_every = k > 0 the
     # expert is also restarted from every k-th step of each kept episode (before its leader reaches the goal),
     # each continuation is kept as an episode, and training chunks start only at an episode's first step
     # (sample_until = 1): every label is then the expert's answer to the positions alone. 0 = off (the paper).
@@ -177,15 +177,14 @@ def generate_unit(ctx: dict, payload: dict, cache: dict) -> dict:
             if row["success"] or dc.keep_failed:
                 stats[2] += 1
                 rows.append(row)
-    restarts = restart_rows(rows, by_id, expert, cfg.task, dc.restart_every) if dc.restart_every > 0 else []
-    if dc.restart_every > 0:
-        rows = [r | {"sample_until": 1} for r in rows]
-    rows += [r for r in restarts if r["success"] or dc.keep_failed]
+    extra = {}
+    if dc.restart_every > 0:  # Markov labels: chunks only at an episode's first step, the restarts' included
+        restarts = restart_rows(rows, by_id, expert, cfg.task, dc.restart_every)
+        rows = [r | {"sample_until": 1} for r in rows] + [r for r in restarts if r["success"] or dc.keep_failed]
+        extra["restarts"] = {"states": len(restarts), "succeeded": sum(bool(r["success"]) for r in restarts)}
     rows.sort(key=lambda r: r["episode_id"])
     summary = {"unit": key, "maps": len(maps), "episodes": len(rows), "by_team_size": by_n, "steps": steps,
-               "bad_maps": bad, "skipped": skipped}
-    if dc.restart_every > 0:
-        summary["restarts"] = {"states": len(restarts), "succeeded": sum(bool(r["success"]) for r in restarts)}
+               "bad_maps": bad, "skipped": skipped} | extra
     maps_path, ep_path = shard_paths(out, key)
     atomic_write_table(maps_table(maps), maps_path, "maps", {"fingerprint": ctx["fingerprint"]})
     atomic_write_table(episodes_table(rows), ep_path, "episodes",
