@@ -209,6 +209,8 @@ LATER_FIELDS: tuple[tuple[str, Any], ...] = (
     ("plan.keep_previous", False),  # 2026-12-05
     ("dataset.restart_every", 0),  # 2026-12-06
     ("expert.warm_start", False),
+    ("model.prev_move", False),  # 2026-12-06, fourth session
+    ("samples.prev_noise", 0.0),
 )
 
 

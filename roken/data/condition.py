@@ -11,6 +11,10 @@ rest is padding) and the canvas side S:
   traj_mask  (T,)       1 for robots whose chunk is given (conditional mode, clustered rollout)
   robot_mask (T,)       True for real robots
   chunk      (T, H, 2)  the given chunks in the model's representation (0 for generated robots and padding)
+  prev_move  (T, 2)     each robot's last chunk move: (position - position `interval` simulator steps earlier) /
+                        (interval * max_step), the chunk's own units (0 at an episode's start and for padding).
+                        Read only by a model with `model.prev_move` (the expert's next move depends on its
+                        inertia, which positions alone do not show)
   map        (3, S, S)  occupancy as the robots know it, start heat-map, goal heat-map (0 without a leader)
 
 A sensing mask (S, S) bool marks the cells the team has seen; unseen cells are shown as free (the paper's
@@ -25,7 +29,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from .samples import SampleConfig
 
-CONDITION_KEYS = ("start", "rel_goal", "goal", "goal_mask", "traj_mask", "robot_mask", "chunk", "map")
+CONDITION_KEYS = ("start", "rel_goal", "goal", "goal_mask", "traj_mask", "robot_mask", "chunk", "map", "prev_move")
 
 def heatmap(points: np.ndarray, size: int, sigma: float) -> np.ndarray:
     """(S, S) max over points (n, 2) of Gaussian kernels evaluated at cell centres."""
@@ -66,13 +70,15 @@ def known_occupancy(occupancy: np.ndarray, seen: np.ndarray | None) -> np.ndarra
 
 def build_condition(occupancy: np.ndarray, positions: np.ndarray, leader: int, goal: np.ndarray | None,
                     cfg: "SampleConfig", given: np.ndarray | None = None, fixed: np.ndarray | None = None,
-                    seen: np.ndarray | None = None, tokens: int | None = None) -> dict[str, np.ndarray]:
+                    seen: np.ndarray | None = None, tokens: int | None = None,
+                    previous: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """One world state as the model's inputs (module docstring).
 
     occupancy (S, S) on the canvas; positions (n, 2) metres; leader in 0..n-1, or -1 when no robot holds the
     goal (a later cluster of clustered rollout); given (n, H, 2) planned positions in metres of the robots
     marked in fixed (n,) bool (rows of other robots are ignored); seen (S, S) bool or None; tokens >= n robot
-    slots (default samples.max_robots)."""
+    slots (default samples.max_robots); previous (n, 2) the positions `interval` simulator steps earlier (None:
+    at rest)."""
     S, H = cfg.canvas, cfg.horizon
     positions = np.asarray(positions, dtype=np.float32).reshape(-1, 2)
     n = len(positions)
@@ -89,9 +95,11 @@ def build_condition(occupancy: np.ndarray, positions: np.ndarray, leader: int, g
         "start": np.zeros((T, 2), np.float32), "rel_goal": np.zeros((T, 2), np.float32),
         "goal": np.zeros(2, np.float32), "goal_mask": np.zeros(T, np.float32), "traj_mask": np.zeros(T, np.float32),
         "robot_mask": np.zeros(T, bool), "chunk": np.zeros((T, H, 2), np.float32),
-        "map": np.zeros((3, S, S), np.float32),
+        "map": np.zeros((3, S, S), np.float32), "prev_move": np.zeros((T, 2), np.float32),
     }
     out["start"][:n] = positions
+    if previous is not None:
+        out["prev_move"][:n] = (positions - np.asarray(previous, np.float32).reshape(n, 2)) / cfg.step_scale
     out["robot_mask"][:n] = True
     if fixed is not None and np.any(fixed):
         fixed = np.asarray(fixed, dtype=bool)

@@ -15,6 +15,7 @@ One sample is one episode at one time t, padded to `max_robots` robot tokens (R)
   occ_small  (R, 7, 7)  occupancy around each robot's cell; occ_large (R, 7, 7): 21 x 21 max-pooled by 3
   map        (3, S, S)  occupancy, start heat-map, goal heat-map (Gaussian kernels), S = canvas = 140
   sdf        (S, S)     signed distance (metres) at cell centres, for the SDF loss
+  prev_move  (R, 2)     each robot's last chunk move, (p_t - p_{t-interval}) / (interval * max_step) (condition.py)
 
 The goal is sampled along the leader's future trajectory: with `final_goal_prob` the task's goal, otherwise
 the leader's position at a random later step t_g, and then the sample is the sub-episode that ends at t_g
@@ -37,7 +38,7 @@ from . import shards
 from .condition import build_condition, decode_chunk, encode_chunk, heatmap  # noqa: F401  (re-exported)
 
 SAMPLE_KEYS = ("chunk", "start", "rel_goal", "goal", "goal_mask", "traj_mask", "robot_mask", "waypoints",
-               "occ_small", "occ_large", "map", "sdf", "num_robots")
+               "occ_small", "occ_large", "map", "sdf", "num_robots", "prev_move")
 
 
 @dataclass
@@ -64,6 +65,9 @@ class SampleConfig:
     subteam_prob: float = 0.0
     subteam_max: int = 4
     comm_radius: float = 15.0  # R: robots within it are neighbours when a cluster is grown
+    # std of Gaussian noise on prev_move (chunk units, 1 = a full-speed move) of training samples: a model that
+    # reads its last move (model.prev_move) must not trust it blindly, since in closed loop it is its own move
+    prev_noise: float = 0.0
 
     @property
     def step_scale(self) -> float:
@@ -87,6 +91,8 @@ def check(cfg: SampleConfig) -> None:
         raise ValueError(f"samples.patch must be odd (a patch centred on the robot's cell), got {cfg.patch}")
     if not all(0 <= p <= 1 for p in (cfg.condition_prob, cfg.final_goal_prob, cfg.subteam_prob)):
         raise ValueError("samples.condition_prob, final_goal_prob and subteam_prob are probabilities in [0, 1]")
+    if cfg.prev_noise < 0:
+        raise ValueError(f"samples.prev_noise must be >= 0 (0 = none), got {cfg.prev_noise}")
     if cfg.subteam_max < 2:
         raise ValueError(f"samples.subteam_max must be >= 2 (a cluster holds a condition and a generated robot), "
                          f"got {cfg.subteam_max}")
@@ -274,7 +280,7 @@ def sample_shapes(cfg: SampleConfig) -> dict[str, tuple[tuple[int, ...], type]]:
     return {"chunk": ((R, H, 2), f), "start": ((R, 2), f), "rel_goal": ((R, 2), f), "goal": ((2,), f),
             "goal_mask": ((R,), f), "traj_mask": ((R,), f), "robot_mask": ((R,), bool), "waypoints": ((R, K, 2), f),
             "occ_small": ((R, P, P), f), "occ_large": ((R, P, P), f), "map": ((3, S, S), f), "sdf": ((S, S), f),
-            "num_robots": ((), np.int64)}
+            "num_robots": ((), np.int64), "prev_move": ((R, 2), f)}
 
 
 def make_sample(bank: EpisodeBank, i: int, rng: np.random.Generator, cfg: SampleConfig) -> dict[str, np.ndarray]:
@@ -301,6 +307,7 @@ def make_sample(bank: EpisodeBank, i: int, rng: np.random.Generator, cfg: Sample
         P, N = P[:, members], len(members)
     idx = np.minimum(t + cfg.interval * np.arange(H + 1), t_g)
     points = P[idx]  # (H+1, N, 2)
+    before = P[max(0, t - cfg.interval)]  # (N, 2): one chunk move earlier (at rest at the episode's start)
     future = P[t:t_g + 1]  # (L, N, 2)
     wps = np.stack([_future_points(future[:, j], cfg.waypoint_spacing, K) for j in range(N)])  # (N, K, 2)
     if leader >= 0:
@@ -313,9 +320,9 @@ def make_sample(bank: EpisodeBank, i: int, rng: np.random.Generator, cfg: Sample
         e = int(rng.integers(0, 8))
         occ, sdf = transform_grid(occ, e), transform_grid(sdf, e)
         points, wps = transform_points(points, e, S), transform_points(wps, e, S)
-        goal = transform_points(goal, e, S)
+        goal, before = transform_points(goal, e, S), transform_points(before, e, S)
     order = rng.permutation(N) if cfg.shuffle_robots else np.arange(N)
-    points, wps = points[:, order], wps[order]
+    points, wps, before = points[:, order], wps[order], before[order]
     leader = int(np.flatnonzero(order == leader)[0]) if leader >= 0 else -1
 
     start = points[0]  # (N, 2)
@@ -328,8 +335,10 @@ def make_sample(bank: EpisodeBank, i: int, rng: np.random.Generator, cfg: Sample
     out = {k: np.zeros(shape, dtype) for k, (shape, dtype) in sample_shapes(cfg).items()}
     # the inputs through the one condition builder (the planner and GRPO call it too); the given chunks of
     # conditioned robots are the target chunk itself, so only the targets are filled in here
-    out.update(build_condition(occ, start, leader, goal, cfg, fixed=None))
+    out.update(build_condition(occ, start, leader, goal, cfg, fixed=None, previous=before))
     out["traj_mask"][:N] = traj_mask
+    if cfg.prev_noise > 0:
+        out["prev_move"][:N] += rng.normal(0.0, cfg.prev_noise, (N, 2)).astype(np.float32)
     out["num_robots"] = np.int64(N)
     out["chunk"][:N] = encode_chunk(points, cfg)
     out["waypoints"][:N] = (wps - start[:, None, :]) / cfg.waypoint_scale

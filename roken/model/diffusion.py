@@ -20,7 +20,7 @@ import torch
 
 from .dit import MapContext, RokenDiT
 
-COND_KEYS = ("start", "rel_goal", "goal_mask", "traj_mask", "robot_mask")
+COND_KEYS = ("start", "rel_goal", "goal_mask", "traj_mask", "robot_mask", "prev_move")
 
 
 @dataclass

@@ -48,6 +48,9 @@ class ModelConfig:
     # Beyond the paper, for laptops (README "A map encoder for laptops"); the defaults are the paper's.
     map_encoder: str = "resnet"  # resnet (paper) | patch: linear 10x10 patch embedding + ConvNeXt mixer blocks
     local_crop: int = 0  # side (cells) of an ego-centric occupancy crop in each robot token, at 1x and 3x; 0 = off
+    # Beyond the paper: each robot token also sees its last chunk move (cond["prev_move"]), the inertia the
+    # expert's next moves follow; zero-initialised, so a model trained without it starts unchanged.
+    prev_move: bool = False
 
 
 PRESETS = {
@@ -303,6 +306,8 @@ class RokenDiT(nn.Module):
         self.map_encoder = MAP_ENCODERS[cfg.map_encoder](cfg)
         if cfg.local_crop:
             self.phi_crop = nn.Sequential(nn.Linear(2 * cfg.local_crop ** 2, w), nn.SiLU(), nn.Linear(w, w))
+        if cfg.prev_move:
+            self.phi_prev = nn.Linear(2, w)
         self.blocks = nn.ModuleList([DecoderBlock(cfg) for _ in range(cfg.depth)])
         self.occ_layer = cfg.occ_layer if cfg.occ_layer >= 0 else cfg.depth // 2 - 1
         self.final = FinalLayer(w, 2 * H)
@@ -333,6 +338,9 @@ class RokenDiT(nn.Module):
         nn.init.zeros_(self.final.adaLN_modulation[-1].bias)
         nn.init.zeros_(self.final.linear.weight)
         nn.init.zeros_(self.final.linear.bias)
+        if self.cfg.prev_move:  # the last move enters at 0: a fine-tune from a model without it starts unchanged
+            nn.init.zeros_(self.phi_prev.weight)
+            nn.init.zeros_(self.phi_prev.bias)
 
     def num_params(self) -> int:
         return sum(p.numel() for p in self.parameters())
@@ -346,6 +354,7 @@ class RokenDiT(nn.Module):
                 aux: bool = False) -> dict[str, torch.Tensor]:
         """x (B, R, H, 2) noisy chunks (conditioned robots hold their clean chunk), k (B,) diffusion steps,
         cond: start (B, R, 2) m, rel_goal (B, R, 2), goal_mask, traj_mask (B, R), robot_mask (B, R) bool,
+        prev_move (B, R, 2) (read with model.prev_move),
         map (Bm, 3, S, S) with B = Bm * G (G candidates per map). Returns eps (B, R, H, 2) and, with aux,
         waypoints (B, R, K, 2), occ_small / occ_large logits (B, R, P, P)."""
         B, R, H, _ = x.shape
@@ -358,6 +367,8 @@ class RokenDiT(nn.Module):
             Bm = ctx.occ.shape[0]
             crop = local_crops(ctx.occ, cond["start"].view(Bm, B // Bm, R, 2)[:, 0], self.cfg.local_crop)
             z = z + self.phi_crop(crop).repeat_interleave(B // Bm, 0)  # (B, R, W)
+        if self.cfg.prev_move:
+            z = z + self.phi_prev(cond["prev_move"].to(z.dtype))  # (B, R, 2) -> (B, R, W)
         c = self.t_embed(k)  # (B, W)
         pad_mask = cond["robot_mask"].bool()[:, None, None, :]  # (B, 1, 1, R): True = attend
         out = {}

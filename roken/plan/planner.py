@@ -133,11 +133,12 @@ class RokenPlanner:
     # ------------------------------------------------------------------ one plan for user code
     def plan(self, occupancy: np.ndarray, positions: np.ndarray, leader: int, goal, fixed: dict | None = None,
              candidates: int = 1, sampler: str = "ddim", steps: int = 10, seed: int | None = None,
-             seen: np.ndarray | None = None) -> np.ndarray:
+             seen: np.ndarray | None = None, previous: np.ndarray | None = None) -> np.ndarray:
         """Plan for one team. occupancy (h, w), 1 = obstacle; positions (n, 2) metres (x along columns);
         leader: the robot given the goal (-1: none); fixed: {robot: (H, 2) positions} returned exactly;
-        seen (h, w) bool: cells sensed so far (unseen shown as free). Returns (n, H, 2), or (G, n, H, 2)
-        when candidates > 1."""
+        seen (h, w) bool: cells sensed so far (unseen shown as free); previous (n, 2): the positions one chunk
+        move (samples.interval simulator steps) earlier, read by a model with model.prev_move (None: at rest).
+        Returns (n, H, 2), or (G, n, H, 2) when candidates > 1."""
         occ = np.asarray(occupancy)
         pos = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
         n, H, S = len(pos), self.cfg.horizon, self.cfg.canvas
@@ -165,7 +166,8 @@ class RokenPlanner:
                 raise ValueError(f"fixed[{r}] has shape {path.shape}; a given trajectory is ({H}, 2) positions")
             fixed_mask[r], given[r] = True, to_canvas(path)
         cond = build_condition(occ, to_canvas(pos), leader, None if goal is None else to_canvas(goal), self.cfg,
-                               given=given, fixed=fixed_mask, seen=seen, tokens=n)
+                               given=given, fixed=fixed_mask, seen=seen, tokens=n,
+                               previous=None if previous is None else to_canvas(np.reshape(previous, (n, 2))))
         gen = torch.Generator().manual_seed(int(seed)) if seed is not None else None
         out = self.sample([cond], candidates, sampler, steps, [gen] if gen is not None else None)[0, :, :n]
         out = (out - offset) / scale

@@ -182,8 +182,10 @@ class RokenRollout:
             for b in rows:
                 s, c = slots[b], cl[b][stage]
                 goal = goals[b] if c.leader >= 0 else None
+                before = s.hist[max(0, len(s.hist) - 1 - cfg.interval)][c.members]  # one chunk move ago
                 conds.append(build_condition(s.gm.occupancy, s.q[c.members], c.leader, goal, self.planner.cfg,
-                                             given=planned[b][c.members], fixed=c.fixed, seen=s.seen, tokens=T))
+                                             given=planned[b][c.members], fixed=c.fixed, seen=s.seen, tokens=T,
+                                             previous=before))
             outside = self.outside([slots[b] for b in rows], [cl[b][stage] for b in rows],
                                    [planned[b] for b in rows], [done[b] for b in rows]) if pc.guide else None
             guide = self.guide([slots[b] for b in rows], conds, outside) if pc.guide else None

@@ -24,7 +24,8 @@ def state(bank: EpisodeBank, prompt: tuple[int, int]) -> tuple[np.ndarray, int, 
 def condition(bank: EpisodeBank, prompt: tuple[int, int], cfg: SampleConfig) -> dict[str, np.ndarray]:
     """The model's inputs for a prompt, with one token per robot of the team."""
     pos, leader, goal, m = state(bank, prompt)
-    return build_condition(bank.occupancy[m], pos, leader, goal, cfg, tokens=len(pos))
+    before = bank.positions(prompt[0])[max(0, prompt[1] - cfg.interval)]  # one chunk move earlier
+    return build_condition(bank.occupancy[m], pos, leader, goal, cfg, tokens=len(pos), previous=before)
 
 
 class PromptSource:

@@ -206,21 +206,48 @@ class Pretraining:
 
     def _load_init(self, path: str) -> None:
         """Start from another run's checkpoint (DAgger's rounds): its weights and EMA, and its optimizer moments
-        when it has a train_state.pt (a fresh Adam at full lr would shake a trained model)."""
+        when it has a train_state.pt (a fresh Adam at full lr would shake a trained model). A checkpoint without
+        the last-move input may start a run with `model.prev_move` (the new input starts at 0, its moments fresh)."""
         loaded = ckpt.load(path, "cpu")
         self.ema_offset = int(loaded.config.get("step", 0)) + int(loaded.config.get("ema_offset", 0))
-        if asdict(loaded.model_cfg) != asdict(self.spec.model):
+        old, own = asdict(loaded.model_cfg), asdict(self.spec.model)
+        adds_prev = own["prev_move"] and not old["prev_move"] and {**old, "prev_move": True} == own
+        if old != own and not adds_prev:
             raise ckpt.CheckpointError(f"{loaded.path}: its model section differs from this run's "
-                                       f"({', '.join(changed_keys(asdict(loaded.model_cfg), asdict(self.spec.model), 'model.')[:4])}); "
+                                       f"({', '.join(changed_keys(old, own, 'model.')[:4])}); "
                                        f"start from a checkpoint of the same model config")
         if (loaded.path / ckpt.STATE).is_file():
             s = ckpt.load_train_state(loaded.path)
-            self.model.load_state_dict(s["model"])
-            self.ema.load_state_dict(s["ema"])
-            self.opt.load_state_dict(s["optimizer"])
+            model, ema, optimizer = s["model"], s["ema"], s["optimizer"]
         else:  # inference weights only (an exported model): the EMA weights start both copies
-            self.model.load_state_dict(loaded.model.state_dict())
-            self.ema.load_state_dict(loaded.model.state_dict())
+            model = ema = loaded.model.state_dict()
+            optimizer = None
+        if adds_prev:
+            missing = self.model.load_state_dict(model, strict=False).missing_keys
+            self.ema.load_state_dict(ema, strict=False)
+            if any(not k.startswith("phi_prev.") for k in missing):
+                raise ckpt.CheckpointError(f"{loaded.path}: weights missing {missing[:4]}")
+            optimizer = optimizer and self._moments_without(optimizer, "phi_prev.")
+        else:
+            self.model.load_state_dict(model)
+            self.ema.load_state_dict(ema)
+        if optimizer is not None:
+            self.opt.load_state_dict(optimizer)
+
+    def _moments_without(self, optimizer: dict, prefix: str) -> dict:
+        """An optimizer state saved by this model without the parameters named `prefix*`, re-indexed for this
+        model (the new parameters get fresh moments): AdamW's state is keyed by position in its groups."""
+        names = [[n for n, p in self.model.named_parameters() if any(p is q for q in g["params"])]
+                 for g in self.opt.param_groups]
+        new_index, old_index = {}, {}
+        for n in (n for group in names for n in group):
+            new_index[n] = len(new_index)
+            if not n.startswith(prefix):
+                old_index[n] = len(old_index)
+        groups = [{**saved, "params": [new_index[n] for n in group]}
+                  for saved, group in zip(optimizer["param_groups"], names)]
+        state = {new_index[n]: optimizer["state"][i] for n, i in old_index.items() if i in optimizer["state"]}
+        return {"state": state, "param_groups": groups}
 
     def config_dict(self, validation: dict | None = None) -> dict:
         return {"model": asdict(self.spec.model), "diffusion": asdict(self.spec.diffusion),
