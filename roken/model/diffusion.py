@@ -98,7 +98,7 @@ def make_prompt(model: RokenDiT, cond: dict, given: torch.Tensor | None = None, 
                 ctx: MapContext | None = None) -> Prompt:
     """cond holds COND_KEYS with Bm rows and `map` (Bm, 3, S, S); encodes the map once."""
     G = num_candidates
-    rep = {key: cond[key].repeat_interleave(G, 0) for key in COND_KEYS}
+    rep = {key: cond[key].repeat_interleave(G, 0) for key in COND_KEYS if key in cond}  # prev_move is optional
     B, R = rep["start"].shape[:2]
     H = model.cfg.horizon
     given = torch.zeros(B, R, H, 2, device=rep["start"].device) if given is None else given.repeat_interleave(G, 0)

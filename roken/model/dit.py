@@ -367,8 +367,9 @@ class RokenDiT(nn.Module):
             Bm = ctx.occ.shape[0]
             crop = local_crops(ctx.occ, cond["start"].view(Bm, B // Bm, R, 2)[:, 0], self.cfg.local_crop)
             z = z + self.phi_crop(crop).repeat_interleave(B // Bm, 0)  # (B, R, W)
-        if self.cfg.prev_move:
-            z = z + self.phi_prev(cond["prev_move"].to(z.dtype))  # (B, R, 2) -> (B, R, W)
+        if self.cfg.prev_move:  # absent from the condition: at rest (build_condition's previous=None)
+            prev = cond.get("prev_move")
+            z = z + self.phi_prev(torch.zeros_like(cond["start"]) if prev is None else prev.to(z.dtype))  # (B, R, W)
         c = self.t_embed(k)  # (B, W)
         pad_mask = cond["robot_mask"].bool()[:, None, None, :]  # (B, 1, 1, R): True = attend
         out = {}
