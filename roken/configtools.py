@@ -211,6 +211,8 @@ LATER_FIELDS: tuple[tuple[str, Any], ...] = (
     ("expert.warm_start", False),
     ("model.prev_move", False),  # 2026-12-06, fourth session
     ("samples.prev_noise", 0.0),
+    ("samples.early_prob", 0.0),
+    ("samples.early_steps", 40),
 )
 
 

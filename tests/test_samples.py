@@ -159,3 +159,19 @@ def test_ray_style_batches_match_and_skip_failed_episodes(expert_dataset):
 def test_too_many_robots_names_the_fix(bank):
     with pytest.raises(ValueError, match="max_robots"):
         make_sample(bank, int(np.argmax(bank.num_robots)), np.random.default_rng(0), replace(PLAIN, max_robots=1))
+
+
+def test_early_times_are_drawn_in_the_first_steps_when_asked(bank):
+    cfg = replace(PLAIN, early_prob=1.0, early_steps=5)
+    for i in range(len(bank)):
+        s = make_sample(bank, i, np.random.default_rng(i), cfg)
+        P, N = bank.positions(i), int(s["num_robots"])
+        ts = np.flatnonzero(np.abs(P - s["start"][:N]).max(axis=(1, 2)) == 0)
+        assert ts.min() < 5, "t is one of the first early_steps steps"
+    with pytest.raises(ValueError, match="samples.early_prob"):
+        from roken.data.samples import check
+        check(replace(PLAIN, early_prob=1.5))
+    # off (the default) draws exactly as before: the same sample for the same generator
+    a = make_sample(bank, 0, np.random.default_rng(3), PLAIN)
+    b = make_sample(bank, 0, np.random.default_rng(3), replace(PLAIN, early_steps=7))
+    assert all(np.array_equal(a[k], b[k]) for k in a)
