@@ -86,7 +86,7 @@ def main() -> None:
     for path in args.checkpoint:
         planner = RokenPlanner.load(path, "cpu")
         cfg = replace(planner.cfg, augment=False, shuffle_robots=False, final_goal_prob=1.0, condition_prob=0.0, subteam_prob=0.0,
-                      prev_noise=0.0)
+                      prev_noise=0.0, early_prob=0.0)
         t0 = time.perf_counter()
         for label, rng_t in (("t = 0 (at rest)", (0, 0)), ("t = 4..15", (4, 15)), ("uniform t", None)):
             batch = prompts(bank, cfg, args.prompts, rng_t, args.seed)
