@@ -264,7 +264,7 @@ class Pretraining:
                                           step=self.step, draws=t.noise_draws)
         if not torch.isfinite(loss):  # stop before a non-finite backward (lr 1e12 segfaulted there)
             bad = [k[7:] for k, v in logs.items() if k != "losses/total" and not torch.isfinite(v)]
-            raise Diverged(f"training diverged at step {self.step}: the loss is {float(loss)} (non-finite terms: "
+            raise Diverged(f"training diverged at step {self.step}: the loss is {float(loss.detach())} (non-finite terms: "
                            f"{', '.join(bad) or 'the weighted sum'}); the last good checkpoint is kept. Lower "
                            f"train.lr (now {t.lr:g}) or keep train.warmup_steps > 0")
         self.opt.zero_grad(set_to_none=True)
