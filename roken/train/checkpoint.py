@@ -247,3 +247,17 @@ def load_train_state(ckpt: str | Path) -> dict:
                               f"training") from None
     except Exception as e:  # noqa: BLE001  (torch raises many types for a damaged pickle / zip)
         raise CheckpointError(f"{p}: cannot be read ({type(e).__name__}: {e}); the file is corrupt") from None
+
+
+def moments_without(saved: dict, model: torch.nn.Module, opt: torch.optim.Optimizer, prefix: str) -> dict:
+    """An optimizer state saved for `model` without its parameters named `prefix*` (a checkpoint from before
+    they existed), re-indexed for `opt` over the whole model; the new parameters get fresh moments. torch keys an
+    optimizer's state by position over its groups, so the positions are matched through parameter names."""
+    name_of = {id(p): n for n, p in model.named_parameters()}
+    names = [[name_of[id(p)] for p in g["params"]] for g in opt.param_groups]
+    flat = [n for group in names for n in group]
+    new_index = {n: i for i, n in enumerate(flat)}
+    old_index = {n: i for i, n in enumerate(n for n in flat if not n.startswith(prefix))}
+    groups = [{**g, "params": [new_index[n] for n in group]} for g, group in zip(saved["param_groups"], names)]
+    state = {new_index[n]: saved["state"][i] for n, i in old_index.items() if i in saved["state"]}
+    return {"state": state, "param_groups": groups}

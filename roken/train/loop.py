@@ -227,27 +227,12 @@ class Pretraining:
             self.ema.load_state_dict(ema, strict=False)
             if any(not k.startswith("phi_prev.") for k in missing):
                 raise ckpt.CheckpointError(f"{loaded.path}: weights missing {missing[:4]}")
-            optimizer = optimizer and self._moments_without(optimizer, "phi_prev.")
+            optimizer = optimizer and ckpt.moments_without(optimizer, self.model, self.opt, "phi_prev.")
         else:
             self.model.load_state_dict(model)
             self.ema.load_state_dict(ema)
         if optimizer is not None:
             self.opt.load_state_dict(optimizer)
-
-    def _moments_without(self, optimizer: dict, prefix: str) -> dict:
-        """An optimizer state saved by this model without the parameters named `prefix*`, re-indexed for this
-        model (the new parameters get fresh moments): AdamW's state is keyed by position in its groups."""
-        names = [[n for n, p in self.model.named_parameters() if any(p is q for q in g["params"])]
-                 for g in self.opt.param_groups]
-        new_index, old_index = {}, {}
-        for n in (n for group in names for n in group):
-            new_index[n] = len(new_index)
-            if not n.startswith(prefix):
-                old_index[n] = len(old_index)
-        groups = [{**saved, "params": [new_index[n] for n in group]}
-                  for saved, group in zip(optimizer["param_groups"], names)]
-        state = {new_index[n]: optimizer["state"][i] for n, i in old_index.items() if i in optimizer["state"]}
-        return {"state": state, "param_groups": groups}
 
     def config_dict(self, validation: dict | None = None) -> dict:
         return {"model": asdict(self.spec.model), "diffusion": asdict(self.spec.diffusion),
