@@ -118,3 +118,43 @@ def test_a_run_adding_the_input_starts_from_a_checkpoint_without_it(expert_datas
         torch.testing.assert_close(run.opt.state[own[name]]["exp_avg"], base.opt.state[old[name]]["exp_avg"])
     assert own["phi_prev.weight"] not in run.opt.state
     assert run.fit()["steps"] == 6 and run.model.phi_prev.weight.abs().sum() > 0
+
+
+def test_a_prefix_hands_the_episode_over_at_its_last_row():
+    """RokenRollout.run(prefixes=...) (benchmarks/start_handoff.py): the expert's first K steps are kept as they
+    are, the first plan is made from their last row with their last move as history, an episode whose prefix
+    already reached the goal is returned untouched, and a prefix from elsewhere is refused."""
+    import pytest
+
+    from roken.expert.laplacian import LaplacianExpert
+    cfg = load_config(None, ["eval.episodes=2"])
+    maps = [generate_map(cfg.map, "eval", i) for i in range(2)]
+    by_id = {m.map_id: m for m in maps}
+    task = make_tasks(cfg, maps, 2)[0][0][1]
+    (_, ep), = list(LaplacianExpert(cfg.expert, cfg.task).run([task], by_id))
+    K = 12
+    torch.manual_seed(0)
+    planner = RokenPlanner(RokenDiT(preset("tiny", prev_move=True)), NoiseSchedule(DiffusionConfig(num_steps=20)),
+                           SampleConfig(), "cpu")
+    seen = []
+    sample = planner.sample
+
+    def spy(conds, *a, **kw):
+        seen.append(np.stack([c["prev_move"] for c in conds]))
+        return sample(conds, *a, **kw)
+
+    planner.sample = spy
+    ro = RokenRollout(planner, PlanConfig(batch_size=2, device="cpu"), cfg.task, cfg.expert)
+    out = {i: (p, info) for i, p, info in ro.run([task, task], by_id, [ep.positions[:K + 1], ep.positions])}
+    hist, info = out[0]
+    np.testing.assert_array_equal(hist[:K + 1], ep.positions[:K + 1].astype(np.float32))
+    assert info["plan_steps"][0] == K and len(hist) > K + 1
+    N, iv = hist.shape[1], SampleConfig().interval
+    want = (hist[K].astype(np.float64) - hist[K - iv]) / SampleConfig().step_scale
+    np.testing.assert_allclose(seen[0][0, :N], want, atol=1e-5)
+    assert np.abs(want).max() > 0.05, "the expert moves in its first steps, so the history is not all zero"
+    whole, info = out[1]
+    np.testing.assert_array_equal(whole, ep.positions.astype(np.float32))
+    assert info["plan_steps"] == [], "an episode its prefix finished is not planned"
+    with pytest.raises(ValueError, match="does not start at the task's starts"):
+        list(ro.run([task], by_id, [ep.positions[3:K]]))

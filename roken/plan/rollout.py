@@ -271,8 +271,11 @@ class RokenRollout:
                      self.planner.device, np.stack([s.leader_field() for s in slots]) if self.pc.guide_follow > 0
                      else None, outside)
 
-    def run(self, tasks: list[Task], maps: dict[str, GridMap]):
-        """Yield (task index, positions (T+1, N, 2) float32, info) as episodes finish (not in task order)."""
+    def run(self, tasks: list[Task], maps: dict[str, GridMap], prefixes: list[np.ndarray | None] | None = None):
+        """Yield (task index, positions (T+1, N, 2) float32, info) as episodes finish (not in task order).
+        prefixes[i] (K+1, N, 2), when given, is task i's first K steps already driven by another planner (the
+        expert, benchmarks/start_handoff.py): the episode goes on from its last row, its last move as history, under
+        the task's own step limit, and the returned positions include it."""
         if not tasks:
             return
         N = tasks[0].num_robots
@@ -285,35 +288,43 @@ class RokenRollout:
 
         def fill(k: int):
             i = pending.pop()
-            slots[k] = _Slot(i, tasks[i], maps[tasks[i].map_id], self)
+            slots[k] = _Slot(i, tasks[i], maps[tasks[i].map_id], self, None if prefixes is None else prefixes[i])
 
         for k in range(len(slots)):
             fill(k)
-        while any(s is not None for s in slots):
+        while True:
+            for k in range(len(slots)):
+                while slots[k] is not None and slots[k].finished:  # (a prefix may end an episode before any plan)
+                    s = slots[k]
+                    yield s.index, np.asarray(s.hist, np.float32), s.info()
+                    slots[k] = None
+                    if pending:
+                        fill(k)
             live = [s for s in slots if s is not None]
+            if not live:
+                return
             for s in live:
                 s.observe()
             plans = self.plan_step(live)
             for s, plan in zip(live, plans):
                 s.execute(plan)
-            for k, s in enumerate(slots):
-                if s is not None and s.finished:
-                    yield s.index, np.asarray(s.hist, np.float32), s.info()
-                    slots[k] = None
-                    if pending:
-                        fill(k)
 
 
 class _Slot:
     """One running episode: state, what it knows, its noise generator and its record."""
 
-    def __init__(self, index: int, task: Task, gm: GridMap, ro: RokenRollout):
+    def __init__(self, index: int, task: Task, gm: GridMap, ro: RokenRollout, prefix: np.ndarray | None = None):
         self.index, self.task, self.gm, self.ro = index, task, gm, ro
         if gm.shape != (ro.planner.cfg.canvas,) * 2:
             raise ValueError(f"map {gm.map_id} is {gm.shape}; the model's canvas is {ro.planner.cfg.canvas}: "
                              f"fit maps to the canvas (the harness's map loaders do)")
         self.q = np.asarray(task.starts, np.float64).copy()
         self.hist = [self.q.astype(np.float32)]
+        if prefix is not None:
+            if not np.allclose(prefix[0], self.q, atol=1e-4):
+                raise ValueError(f"task {index}: its prefix does not start at the task's starts")
+            self.hist = list(np.asarray(prefix, np.float32))
+            self.q = self.hist[-1].astype(np.float64)
         self.limit = ro.limits.step_limit(task, gm)
         seed = np.random.SeedSequence([ro.pc.seed, int(task.seed), len(self.q)]).generate_state(2)
         self.seed = int(seed[0]) << 32 | int(seed[1])
@@ -322,7 +333,8 @@ class _Slot:
         self.plans: list[np.ndarray] = []
         self.last: np.ndarray | None = None  # the plan (N, H, 2) chosen at the last re-plan (plan.keep_previous)
         self.plan_steps: list[int] = []
-        self.reached = False
+        self.reached = bool(np.linalg.norm(self.hist[-1][task.leader].astype(np.float64) - task.goal)
+                            <= ro.tc.eps_goal)  # a prefix may end at the goal already
         self.holds = 0  # re-plans where no candidate was clean and the team held position
         self.subgoal_left = 0  # re-plans left toward the sub-goal (plan.subgoal_after_hold)
         self.padded_known = gm.padded

@@ -1,0 +1,91 @@
+"""How much of plain Roken's failure is the start? The expert drives the first K steps, then the model.
+
+    python benchmarks/start_handoff.py --checkpoint models/roken-cpu-four-dagger                 # 200 eval tasks
+    python benchmarks/start_handoff.py --checkpoint runs/pm-a --steps 0,8,16,32,64 --planner roken+guided
+
+Plain Roken's episodes fail early: the first inter-robot contact comes at a median of 26-30 simulator steps, from
+an at-rest start where the team stands 3-4 m apart and the models' followers' first moves are unrelated to the
+expert's (README "The last move as an input, and the start of an episode"). This runs the Table-1 tasks with the
+Laplacian expert for their first K simulator steps (its own episode, recorded as in the datasets), then hands the
+team to the model in closed loop (`RokenRollout.run(prefixes=...)`: the expert's last move is the model's history,
+the task's own step limit covers the whole episode, the metrics read the whole episode). K = 0 is the plain row.
+Each row says what plain success would be if the model's first K steps were the expert's: if it climbs with K, the
+start is what plain Roken lacks; if it stays low, the model's precision mid-episode is.
+Episodes the expert finishes within K steps are its own (counted in `expert-done`).
+"""
+from __future__ import annotations
+
+import argparse
+import platform
+import time
+
+import numpy as np
+import torch
+
+from roken.config import load_config
+from roken.dagger.relabel import feasible_steps
+from roken.eval.folder import rollout_config
+from roken.eval.harness import load_maps, make_tasks
+from roken.eval.metrics import summarize
+from roken.expert.laplacian import LaplacianExpert
+from roken.plan import RokenPlanner, RokenRollout
+from roken.world.metrics import episode_metrics
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--checkpoint", required=True)
+    ap.add_argument("--planner", default="roken", help="roken | roken+guided | roken+safe ... (the row's planner)")
+    ap.add_argument("--episodes", type=int, default=200)
+    ap.add_argument("--robots", type=int, default=4)
+    ap.add_argument("--maps", default="eval")
+    ap.add_argument("--steps", default="0,8,16,32,64,128", help="K: simulator steps driven by the expert first")
+    ap.add_argument("--set", action="append", default=[], help="config overrides, e.g. plan.noise_scale=0.5")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    torch.set_flush_denormal(True)
+    cfg = load_config(None, [f"eval.maps={args.maps}", f"eval.episodes={args.episodes}"] + args.set)
+    ks = [int(k) for k in args.steps.split(",")]
+    if min(ks) < 0:
+        raise ValueError(f"--steps {args.steps}: each K must be >= 0 simulator steps")
+    maps, _ = load_maps(cfg)
+    by_id = {m.map_id: m for m in maps}
+    tasks = [t for _, t in make_tasks(cfg, maps, args.robots)[0]]
+    planner = RokenPlanner.load(args.checkpoint, "cpu", "fp32", cfg.plan.which, cfg.task.max_step)
+    rollout = RokenRollout(planner, rollout_config(cfg.plan, args.planner), cfg.task, cfg.expert)
+    t0 = time.perf_counter()
+    expert = dict(LaplacianExpert(cfg.expert, cfg.task).run(tasks, by_id))
+    print(f"machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, 1 thread; "
+          f"{len(tasks)} `{args.maps}` tasks, N = {args.robots}, {args.planner} of {planner.source}; the expert's "
+          f"episodes in {time.perf_counter() - t0:.0f} s", flush=True)
+    head = f"{'K':>5}{'expert-done':>12}{'success':>9}{'reach':>7}{'obs.':>7}{'inter':>7}{'conn.':>7}" \
+           f"{'1st viol. after K (median)':>28}{'s':>6}"
+    lines = [head, "-" * len(head)]
+    print(head, flush=True)
+    for K in ks:
+        t0 = time.perf_counter()
+        pos = {i: ep.positions for i, ep in expert.items() if len(ep.positions) - 1 <= K}  # the expert finished
+        rest = [i for i in range(len(tasks)) if i not in pos]
+        prefixes = [expert[i].positions[:K + 1] for i in rest]
+        for j, p, _ in rollout.run([tasks[i] for i in rest], by_id, prefixes):
+            pos[rest[j]] = p
+        rows, after = [], []
+        for i, t in enumerate(tasks):
+            gm = by_id[t.map_id]
+            rows.append(episode_metrics(np.asarray(pos[i]), gm, np.asarray(t.goal), t.leader, cfg.task))
+            if i not in rest:
+                continue
+            bad = np.flatnonzero(~feasible_steps(pos[i][K:], gm, cfg.task))
+            if len(bad):
+                after.append(int(bad[0]))
+        m = summarize(rows)
+        lines.append(f"{K:>5}{len(tasks) - len(rest):>12}{m['full_success']:>9.3f}{m['reach']:>7.3f}"
+                     f"{m['obstacle_collision']:>7.3f}{m['inter_collision']:>7.3f}{m['connectivity']:>7.3f}"
+                     f"{(f'{np.median(after):.0f} ({len(after)} ep.)' if after else '-'):>28}"
+                     f"{time.perf_counter() - t0:>6.0f}")
+        print(lines[-1], flush=True)
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
