@@ -12,6 +12,8 @@ the task's own step limit covers the whole episode, the metrics read the whole e
 Each row says what plain success would be if the model's first K steps were the expert's: if it climbs with K, the
 start is what plain Roken lacks; if it stays low, the model's precision mid-episode is.
 Episodes the expert finishes within K steps are its own (counted in `expert-done`).
+Measured (README "Handing the start to the expert"): it stays low; from any expert state the models break a
+constraint a median of 25-34 steps after the hand-over.
 """
 from __future__ import annotations
 
@@ -23,7 +25,7 @@ import numpy as np
 import torch
 
 from roken.config import load_config
-from roken.dagger.relabel import feasible_steps
+from roken.dagger.relabel import constraint_steps
 from roken.eval.folder import rollout_config
 from roken.eval.harness import load_maps, make_tasks
 from roken.eval.metrics import summarize
@@ -59,7 +61,7 @@ def main() -> None:
           f"{len(tasks)} `{args.maps}` tasks, N = {args.robots}, {args.planner} of {planner.source}; the expert's "
           f"episodes in {time.perf_counter() - t0:.0f} s", flush=True)
     head = f"{'K':>5}{'expert-done':>12}{'success':>9}{'reach':>7}{'obs.':>7}{'inter':>7}{'conn.':>7}" \
-           f"{'1st viol. after K (median)':>28}{'s':>6}"
+           f"{'1st viol. after K (median)':>28}{'of which obs./inter/conn.':>27}{'s':>6}"
     lines = [head, "-" * len(head)]
     print(head, flush=True)
     for K in ks:
@@ -69,19 +71,22 @@ def main() -> None:
         prefixes = [expert[i].positions[:K + 1] for i in rest]
         for j, p, _ in rollout.run([tasks[i] for i in rest], by_id, prefixes):
             pos[rest[j]] = p
-        rows, after = [], []
+        rows, after, kinds = [], [], np.zeros(3, int)
         for i, t in enumerate(tasks):
             gm = by_id[t.map_id]
             rows.append(episode_metrics(np.asarray(pos[i]), gm, np.asarray(t.goal), t.leader, cfg.task))
             if i not in rest:
                 continue
-            bad = np.flatnonzero(~feasible_steps(pos[i][K:], gm, cfg.task))
+            ok = constraint_steps(pos[i][K:], gm, cfg.task)  # (3, T+1-K): clearance, spacing, connectivity
+            bad = np.flatnonzero(~ok.all(axis=0))
             if len(bad):
                 after.append(int(bad[0]))
+                kinds += ~ok[:, bad[0]]  # what the first infeasible step breaks (it may break more than one)
         m = summarize(rows)
         lines.append(f"{K:>5}{len(tasks) - len(rest):>12}{m['full_success']:>9.3f}{m['reach']:>7.3f}"
                      f"{m['obstacle_collision']:>7.3f}{m['inter_collision']:>7.3f}{m['connectivity']:>7.3f}"
                      f"{(f'{np.median(after):.0f} ({len(after)} ep.)' if after else '-'):>28}"
+                     f"{'/'.join(str(k) for k in kinds):>27}"
                      f"{time.perf_counter() - t0:>6.0f}")
         print(lines[-1], flush=True)
     print("\n".join(lines))

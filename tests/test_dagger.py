@@ -13,7 +13,7 @@ from safetensors.torch import load_file
 
 from roken.config import load_config
 from roken.dagger import run_dagger, select_states
-from roken.dagger.relabel import feasible_steps
+from roken.dagger.relabel import constraint_steps, feasible_steps
 from roken.expert.laplacian import ExpertConfig, LaplacianExpert
 from roken.train.data import load_banks
 from roken.train.loop import Pretraining, PretrainSpec
@@ -28,6 +28,23 @@ TINY = ["model.width=64", "model.depth=2", "model.heads=4", "model.mlp_hidden=12
         "train.closed_loop_every=0", "train.closed_loop_tasks=2", "train.closed_loop_robots=2",
         "dagger.rounds=1", "dagger.episodes=3", "dagger.robots=2", "dagger.steps_per_round=2",
         "dagger.state_every=12", "dagger.max_states=3", "dagger.sample_steps=16", "plan.steps=2"]
+
+
+def test_constraint_steps_say_which_constraint_each_state_breaks():
+    tc, gm = TaskConfig(), generate_map(MapConfig(), "train", 3)
+    task = sample_task(gm, 3, tc, np.random.default_rng(0))
+    _, ep = next(LaplacianExpert(ExpertConfig(), tc).run([task], {gm.map_id: gm}))
+    ok = np.stack([ep.positions[40]] * 4).astype(np.float64)
+    ok[1, 1] = ok[1, 0] + [1.0, 0.0]  # two robots 1 m apart (d_coll_min = 2)
+    ok[2, 2] = ok[2, 0] + [0.0, 0.0]  # on top of each other: spacing again
+    far = ok[3].copy()
+    far[2] = far[0] + 3.0 * tc.comm_radius * (far[2] - far[0]) / np.linalg.norm(far[2] - far[0])
+    ok[3] = far  # one robot out of every other's reach (possibly in an obstacle as well)
+    got = constraint_steps(np.concatenate([ep.positions[:1], ok]), gm, tc)
+    assert got.shape == (3, 5) and got[:, 0].all()
+    assert not got[1, 2] and not got[1, 3] and got[2, 2]
+    assert not got[2, 4] and got[1, 4]
+    np.testing.assert_array_equal(feasible_steps(np.concatenate([ep.positions[:1], ok]), gm, tc), got.all(axis=0))
 
 
 def test_expert_refuses_an_infeasible_start_and_leaves_a_feasible_one_cleanly():

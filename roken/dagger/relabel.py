@@ -59,15 +59,22 @@ def check(dc: DaggerConfig) -> None:
                          f"(0, 1) (the expert dataset keeps the rest)")
 
 
-def feasible_steps(positions: np.ndarray, gm: GridMap, tc: TaskConfig) -> np.ndarray:
-    """(T+1,) whether each recorded state satisfies every constraint (clearance, spacing, connected)."""
+def constraint_steps(positions: np.ndarray, gm: GridMap, tc: TaskConfig) -> np.ndarray:
+    """(3, T+1): whether each recorded state keeps clearance, spacing, connectivity (rows in that order)."""
     p = np.asarray(positions, np.float64)
-    ok = (clearance(gm.padded, p) >= tc.d_obs_min).all(axis=1)
+    ok = np.ones((3, len(p)), bool)
+    ok[0] = (clearance(gm.padded, p) >= tc.d_obs_min).all(axis=1)
     if p.shape[1] > 1:
         d = np.linalg.norm(p[:, :, None] - p[:, None], axis=-1)
         off = ~np.eye(p.shape[1], dtype=bool)
-        ok &= (d[:, off] >= tc.d_coll_min).all(axis=1) & connected(d, tc.comm_radius)
+        ok[1] = (d[:, off] >= tc.d_coll_min).all(axis=1)
+        ok[2] = connected(d, tc.comm_radius)
     return ok
+
+
+def feasible_steps(positions: np.ndarray, gm: GridMap, tc: TaskConfig) -> np.ndarray:
+    """(T+1,) whether each recorded state satisfies every constraint (clearance, spacing, connected)."""
+    return constraint_steps(positions, gm, tc).all(axis=0)
 
 
 def select_states(positions: np.ndarray, gm: GridMap, goal: np.ndarray, leader: int, tc: TaskConfig,
