@@ -33,7 +33,7 @@ import torch
 from roken.config import load_config
 from roken.dagger.relabel import feasible_steps
 from roken.eval.harness import load_maps, make_tasks
-from roken.eval.metrics import summarize
+from roken.eval.metrics import COMPACT_HEAD, compact_cells, summarize
 from roken.expert.laplacian import LaplacianExpert
 from roken.plan.rollout import step_toward
 from roken.world.metrics import episode_metrics
@@ -111,8 +111,7 @@ def main() -> None:
     print(f"machine: {platform.processor() or platform.machine()}, python {platform.python_version()}, numpy "
           f"{np.__version__}, 1 thread; {len(tasks)} `{args.maps}` tasks (the harness's, seed {cfg.eval.seed}), "
           f"N = {args.robots}, {replan} moves of {interval} steps executed per re-plan")
-    head = f"{'error':>12}{'sigma':>7}{'measured':>10}{'success':>9}{'reach':>7}{'obs.':>7}{'inter':>7}{'conn.':>7}" \
-           f"{'s':>7}"
+    head = f"{'error':>12}{'sigma':>7}{'measured':>10}{COMPACT_HEAD}{'s':>7}"
     lines = [head, "-" * len(head)]
     print(head, flush=True)
     for error in args.errors.split(","):
@@ -122,9 +121,7 @@ def main() -> None:
             t0 = time.perf_counter()
             rows, measured = run_sigma(cfg, tasks, by_id, sigma, error, replan, interval, args.seed)
             m = summarize(rows)
-            lines.append(f"{error:>12}{sigma:>7.2f}{measured:>10.3f}{m['full_success']:>9.3f}{m['reach']:>7.3f}"
-                         f"{m['obstacle_collision']:>7.3f}{m['inter_collision']:>7.3f}{m['connectivity']:>7.3f}"
-                         f"{time.perf_counter() - t0:>7.0f}")
+            lines.append(f"{error:>12}{sigma:>7.2f}{measured:>10.3f}{compact_cells(m)}{time.perf_counter() - t0:>7.0f}")
             print(lines[-1], flush=True)
     print("\n".join(lines))
 

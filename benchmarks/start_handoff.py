@@ -28,7 +28,7 @@ from roken.config import load_config
 from roken.dagger.relabel import constraint_steps
 from roken.eval.folder import rollout_config
 from roken.eval.harness import load_maps, make_tasks
-from roken.eval.metrics import summarize
+from roken.eval.metrics import COMPACT_HEAD, compact_cells, summarize
 from roken.expert.laplacian import LaplacianExpert
 from roken.plan import RokenPlanner, RokenRollout
 from roken.world.metrics import episode_metrics
@@ -60,7 +60,7 @@ def main() -> None:
     print(f"machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, 1 thread; "
           f"{len(tasks)} `{args.maps}` tasks, N = {args.robots}, {args.planner} of {planner.source}; the expert's "
           f"episodes in {time.perf_counter() - t0:.0f} s", flush=True)
-    head = f"{'K':>5}{'expert-done':>12}{'success':>9}{'reach':>7}{'obs.':>7}{'inter':>7}{'conn.':>7}" \
+    head = f"{'K':>5}{'expert-done':>12}{COMPACT_HEAD}" \
            f"{'1st viol. after K (median)':>28}{'of which obs./inter/conn.':>27}{'s':>6}"
     lines = [head, "-" * len(head)]
     print(head, flush=True)
@@ -83,8 +83,7 @@ def main() -> None:
                 after.append(int(bad[0]))
                 kinds += ~ok[:, bad[0]]  # what the first infeasible step breaks (it may break more than one)
         m = summarize(rows)
-        lines.append(f"{K:>5}{len(tasks) - len(rest):>12}{m['full_success']:>9.3f}{m['reach']:>7.3f}"
-                     f"{m['obstacle_collision']:>7.3f}{m['inter_collision']:>7.3f}{m['connectivity']:>7.3f}"
+        lines.append(f"{K:>5}{len(tasks) - len(rest):>12}{compact_cells(m)}"
                      f"{(f'{np.median(after):.0f} ({len(after)} ep.)' if after else '-'):>28}"
                      f"{'/'.join(str(k) for k in kinds):>27}"
                      f"{time.perf_counter() - t0:>6.0f}")

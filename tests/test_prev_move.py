@@ -74,6 +74,18 @@ def test_the_input_is_ignored_without_the_option_and_enters_at_zero_with_it(expe
         assert not torch.allclose(on(x, k, cond)["eps"], on(x, k, zero)["eps"])
 
 
+def spy_prev_moves(planner: RokenPlanner) -> list:
+    """The prev_move inputs (B, R, 2) of each of planner's sample() calls, appended as they come."""
+    seen, sample = [], planner.sample
+
+    def spy(conds, *a, **kw):
+        seen.append(np.stack([c["prev_move"] for c in conds]))
+        return sample(conds, *a, **kw)
+
+    planner.sample = spy
+    return seen
+
+
 def test_closed_loop_feeds_the_executed_move_one_interval_back():
     cfg = load_config(None, ["eval.episodes=2"])
     maps = [generate_map(cfg.map, "eval", i) for i in range(2)]
@@ -83,14 +95,7 @@ def test_closed_loop_feeds_the_executed_move_one_interval_back():
     for p in model.final.parameters():
         torch.nn.init.normal_(p, std=0.5)
     planner = RokenPlanner(model, NoiseSchedule(DiffusionConfig(num_steps=20)), SampleConfig(), "cpu")
-    seen = []
-    sample = planner.sample
-
-    def spy(conds, *a, **kw):
-        seen.append(np.stack([c["prev_move"] for c in conds]))
-        return sample(conds, *a, **kw)
-
-    planner.sample = spy
+    seen = spy_prev_moves(planner)
     ro = RokenRollout(planner, PlanConfig(batch_size=1, device="cpu"), cfg.task, cfg.expert)
     (_, hist, info), = [r for r in ro.run([tasks[0][1]], {m.map_id: m for m in maps}) if r[0] == 0]
     N, iv = hist.shape[1], SampleConfig().interval
@@ -136,14 +141,7 @@ def test_a_prefix_hands_the_episode_over_at_its_last_row():
     torch.manual_seed(0)
     planner = RokenPlanner(RokenDiT(preset("tiny", prev_move=True)), NoiseSchedule(DiffusionConfig(num_steps=20)),
                            SampleConfig(), "cpu")
-    seen = []
-    sample = planner.sample
-
-    def spy(conds, *a, **kw):
-        seen.append(np.stack([c["prev_move"] for c in conds]))
-        return sample(conds, *a, **kw)
-
-    planner.sample = spy
+    seen = spy_prev_moves(planner)
     ro = RokenRollout(planner, PlanConfig(batch_size=2, device="cpu"), cfg.task, cfg.expert)
     out = {i: (p, info) for i, p, info in ro.run([task, task], by_id, [ep.positions[:K + 1], ep.positions])}
     hist, info = out[0]

@@ -41,3 +41,14 @@ def format_table(rows: list[tuple[str, dict]]) -> str:
                      f"{m['obstacle_collision']:>10.3f}{m['inter_collision']:>12.3f}{m['connectivity']:>9.3f}"
                      f"{m['reach']:>8.3f}{m['length']:>8.3f}")
     return "\n".join(lines)
+
+
+# The benchmarks' compact columns of a summary (full success, reach, the three constraint rates), one header and
+# one formatter so every benchmark table lines up the same way.
+COMPACT_HEAD = f"{'success':>9}{'reach':>7}{'obs.':>7}{'inter':>7}{'conn.':>7}"
+
+
+def compact_cells(m: dict) -> str:
+    """COMPACT_HEAD's cells of a summarize() result."""
+    return (f"{m['full_success']:>9.3f}{m['reach']:>7.3f}{m['obstacle_collision']:>7.3f}{m['inter_collision']:>7.3f}"
+            f"{m['connectivity']:>7.3f}")
