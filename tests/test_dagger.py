@@ -168,3 +168,51 @@ def test_successful_rollouts_are_kept_as_executed_with_keep_success():
     rows, stats = relabel(eps, {gm.map_id: gm}, 3, DaggerConfig(state_every=20, max_states=2, only_failed=True),
                           tc, ExpertConfig())
     assert stats["self"] == 0 and all(r["source"] == "dagger" for r in rows)
+
+
+def test_relabels_can_carry_the_learners_last_moves_as_history():
+    """dagger.history_steps: a relabelled episode begins with the rollout's last steps before its state, its chunks
+    start at that state (sample_from), so a last-move model's sample there reads the learner's own last move."""
+    from roken.dagger.relabel import DaggerConfig, relabel
+    from roken.data.samples import EpisodeBank, SampleConfig, make_sample
+    from roken.data.store import episodes_table, maps_table
+
+    tc, gm = TaskConfig(), generate_map(MapConfig(), "train", 3)
+    task = sample_task(gm, 3, tc, np.random.default_rng(0))
+    _, ep = next(LaplacianExpert(ExpertConfig(), tc).run([task], {gm.map_id: gm}))
+    P = ep.positions[:81].astype(np.float64)  # a rollout that moves and timed out (relabelled)
+    eps = [{"map_id": gm.map_id, "positions": P, "goal": task.goal, "leader": task.leader, "episode_id": "e0",
+            "seed": 0, "success": False}]
+    dc = DaggerConfig(state_every=20, max_states=2, history_steps=4, sample_steps=16)
+    rows, stats = relabel(eps, {gm.map_id: gm}, 0, dc, tc, ExpertConfig())
+    plain, _ = relabel(eps, {gm.map_id: gm}, 0, DaggerConfig(state_every=20, max_states=2), tc, ExpertConfig())
+    assert len(rows) == len(plain) == stats["states"] == 2
+    for r, q in zip(rows, plain):
+        t = int(r["episode_id"].rsplit("-t", 1)[1])
+        np.testing.assert_allclose(r["positions"][:5], P[t - 4:t + 1], atol=1e-5)  # the learner's steps, then t
+        np.testing.assert_allclose(r["positions"][4:], q["positions"], atol=1e-5)  # the same expert continuation
+        assert (r["sample_from"], r["sample_until"], q["sample_from"], q["sample_until"]) == (4, 20, 0, 0)
+    bank = EpisodeBank.from_arrow(episodes_table(rows), maps_table([gm]))
+    cfg = SampleConfig(augment=False, shuffle_robots=False, condition_prob=0.0, subteam_prob=0.0)
+
+    class Spy:  # records the sampler's integer draws (the chunk time is the first); `first` forces that one
+        def __init__(self, seed, first=None):
+            self.g, self.calls, self.first = np.random.default_rng(seed), [], first
+
+        def integers(self, *a, **kw):
+            self.calls.append(a)
+            if len(self.calls) == 1 and self.first is not None:
+                return self.first
+            return self.g.integers(*a, **kw)
+
+        def __getattr__(self, name):
+            return getattr(self.g, name)
+
+    for seed in range(5):
+        rng = Spy(seed)
+        make_sample(bank, 0, rng, cfg)
+        assert rng.calls[0][:2] == (4, 20), "chunks start at the relabelled state, within sample_steps of it"
+    t = int(rows[0]["episode_id"].rsplit("-t", 1)[1])
+    s = make_sample(bank, 0, Spy(0, first=4), cfg)  # the chunk at the relabelled state
+    np.testing.assert_allclose(s["prev_move"][:3], (P[t] - P[t - 4]) / cfg.step_scale, atol=1e-5)
+    assert np.abs(s["prev_move"][:3]).max() > 0.05, "the learner moved into the state: not the at-rest zero"

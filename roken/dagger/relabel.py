@@ -32,6 +32,11 @@ class DaggerConfig:
     steps_per_round: int = 1000  # training steps per round on the mix
     share: float = 0.5  # share of training samples drawn from the relabelled episodes of all rounds so far
     sample_steps: int = 0  # training chunks of a relabelled episode start in its first this many steps (0 = anywhere)
+    # The learner's own last moves as history: each relabelled episode begins with the rollout's last this many
+    # steps before the relabelled state (`sample_from`; chunks start at that state). A model that reads its last
+    # move (model.prev_move) then learns the expert's answer to the history it makes itself in closed loop; without
+    # it every relabel starts at rest, a zero last move. samples.interval (4) carries one chunk move; 0 = off.
+    history_steps: int = 0
     # The planner of the rollouts: plain `roken` (the policy's own distribution, the classic DAgger) or a
     # deployable row (`roken+guided+geodesic`, candidates from plan.candidates), whose episodes reach the later
     # states of a task - the stalls its failures end in - that plain rollouts never get to.
@@ -48,6 +53,8 @@ class DaggerConfig:
 def check(dc: DaggerConfig) -> None:
     if dc.sample_steps < 0:
         raise ValueError(f"dagger.sample_steps={dc.sample_steps}: must be >= 0 (0 = chunks start anywhere)")
+    if dc.history_steps < 0:
+        raise ValueError(f"dagger.history_steps={dc.history_steps}: must be >= 0 (0 = relabels start at rest)")
     for k in ("rounds", "episodes", "robots", "state_every", "max_states", "steps_per_round"):
         if getattr(dc, k) < 1:
             raise ValueError(f"dagger.{k} must be >= 1, got {getattr(dc, k)}")
@@ -96,7 +103,7 @@ def relabel(episodes: list[dict], maps: dict[str, GridMap], round_index: int, dc
             tc: TaskConfig, ec: ExpertConfig) -> tuple[list[dict], dict]:
     """Expert continuations from the selected states of `episodes` (rows of a rollout's episodes table).
     Returns the new rows (every one, successful or not: the trainer keeps the successful ones) and counts."""
-    tasks, ids = [], []
+    tasks, ids, before = [], [], []
     refused = 0
     for ep in episodes:
         if dc.only_failed and bool(ep["success"]):
@@ -111,13 +118,16 @@ def relabel(episodes: list[dict], maps: dict[str, GridMap], round_index: int, dc
                 continue
             tasks.append(Task(ep["map_id"], P[t].copy(), goal.copy(), leader, seed=int(ep.get("seed", 0))))
             ids.append(f"dagger-r{round_index:02d}-{ep['episode_id']}-t{t:04d}")
+            before.append(P[max(0, t - dc.history_steps):t])  # (h, N, 2): the learner's last steps, h <= history
     rows: list[dict | None] = [None] * len(tasks)
     if tasks:
         expert = LaplacianExpert(ec, tc)
         for i, e in expert.run(tasks, maps):
-            rows[i] = episode_record(ids[i], "laplacian", tasks[i], maps[tasks[i].map_id], e.positions, tc,
-                                     tasks[i].seed) | {"source": "dagger", "round": round_index,
-                                                                   "sample_until": dc.sample_steps}
+            h = len(before[i])
+            positions = np.concatenate([before[i].astype(e.positions.dtype), e.positions]) if h else e.positions
+            rows[i] = episode_record(ids[i], "laplacian", tasks[i], maps[tasks[i].map_id], positions, tc,
+                                     tasks[i].seed) | {"source": "dagger", "round": round_index, "sample_from": h,
+                                                       "sample_until": dc.sample_steps + h if dc.sample_steps else 0}
     done = [r for r in rows if r is not None]
     kept = [self_record(ep, maps[ep["map_id"]], round_index, dc, tc) for ep in episodes
             if dc.keep_success and bool(ep["success"])]
@@ -134,4 +144,4 @@ def self_record(ep: dict, gm: GridMap, round_index: int, dc: DaggerConfig, tc: T
     task = Task(ep["map_id"], P[0].copy(), np.asarray(ep["goal"], np.float64), int(ep["leader"]),
                 seed=int(ep.get("seed", 0)))
     return episode_record(f"self-r{round_index:02d}-{ep['episode_id']}", dc.planner, task, gm, P, tc, task.seed) | {
-        "source": "self", "round": round_index, "sample_until": 0}
+        "source": "self", "round": round_index, "sample_until": 0, "sample_from": 0}

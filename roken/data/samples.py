@@ -170,6 +170,7 @@ class EpisodeBank:
         self.maps, self.map_index, self.episode_ids = maps, maps.index(map_ids), episode_ids
         self.occupancy, self.map_ids, self.sdf = maps.occupancy, maps.map_ids, maps.sdf
         self.sample_until: np.ndarray | None = None  # per episode: chunks start before this step (DAgger)
+        self.sample_from: np.ndarray | None = None  # per episode: ... and at or after it (a history prefix before)
         expected = (num_steps.astype(np.int64) + 1) * num_robots * 2
         bad = np.flatnonzero(np.diff(offsets) != expected)
         if len(bad):
@@ -191,6 +192,8 @@ class EpisodeBank:
         if "sample_until" in episodes.column_names:  # relabelled episodes: learn the moves near their start
             until = episodes.column("sample_until").to_numpy(zero_copy_only=False)
             bank.sample_until = np.where(until > 0, until, bank.num_steps).astype(np.int64)
+        if "sample_from" in episodes.column_names:  # relabelled episodes led by the learner's own last moves
+            bank.sample_from = episodes.column("sample_from").to_numpy(zero_copy_only=False).astype(np.int64)
         return bank
 
     @classmethod
@@ -305,10 +308,12 @@ def make_sample(bank: EpisodeBank, i: int, rng: np.random.Generator, cfg: Sample
     # leader"). Drawing the goal time first and the chunk before it made 67 % of goals lie within 32 m of the
     # start, while evaluation goals are >= 50 m away.
     # (an episode with sample_until, DAgger's, starts its chunks near the learner's state; the future is whole)
-    hi = T if bank.sample_until is None else max(1, min(T, int(bank.sample_until[i])))
+    # (and one with sample_from after the learner's last moves that led there: the history a last-move model reads)
+    lo = 0 if bank.sample_from is None else min(int(bank.sample_from[i]), T - 1)
+    hi = T if bank.sample_until is None else max(lo + 1, min(T, int(bank.sample_until[i])))
     if cfg.early_prob > 0 and rng.random() < cfg.early_prob:
-        hi = min(hi, cfg.early_steps)
-    t = int(rng.integers(0, hi))
+        hi = max(lo + 1, min(hi, cfg.early_steps))
+    t = int(rng.integers(lo, hi))
     final = rng.random() < cfg.final_goal_prob
     t_g = T if final else int(rng.integers(t + 1, T + 1))
     goal = bank.goal[i].astype(np.float32) if final else P[t_g, leader].astype(np.float32)

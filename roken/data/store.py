@@ -54,9 +54,11 @@ EPISODES_SCHEMA = pa.schema([
 # DAgger's relabelled episodes say where they come from: source "dagger" (an expert dataset's rows are "expert",
 # the column absent; "self": a successful rollout of the learner kept as executed, dagger.keep_success) and the
 # round that visited the start state; training chunks of such an episode start before step `sample_until`
-# (0 = anywhere), near the learner's state it was relabelled from.
+# (0 = anywhere), near the learner's state it was relabelled from, and at or after step `sample_from`: the steps
+# before it are the learner's own last moves before that state (dagger.history_steps; 0 = none), kept as history.
 OPTIONAL_EPISODE_COLUMNS = {"holds": pa.int32(), "plan_steps": pa.list_(pa.int32()), "plans": pa.list_(pa.float32()),
-                            "source": pa.string(), "round": pa.int32(), "sample_until": pa.int32()}
+                            "source": pa.string(), "round": pa.int32(), "sample_until": pa.int32(),
+                            "sample_from": pa.int32()}
 
 
 class StoreError(ValueError):

@@ -146,10 +146,12 @@ def _unique_maps(tables: list[pa.Table]) -> pa.Table:
 def _read(location: str) -> tuple[pa.Table, pa.Table]:
     check_dataset(location)
     names = shards.open_dataset(location, "episodes").schema.names
-    cols = EPISODE_COLUMNS + (["sample_until"] if "sample_until" in names else [])
+    windows = ("sample_until", "sample_from")  # where chunks may start (DAgger's relabelled episodes)
+    cols = EPISODE_COLUMNS + [c for c in windows if c in names]
     episodes = shards.read_table(location, "episodes", columns=cols, successful_only=True)
-    if "sample_until" not in names:  # 0 = chunks start anywhere (expert episodes); lets datasets be mixed
-        episodes = episodes.append_column("sample_until", pa.array(np.zeros(episodes.num_rows, np.int32)))
+    for c in windows:  # 0 = no bound (expert episodes); lets datasets with and without the columns be mixed
+        if c not in names:
+            episodes = episodes.append_column(c, pa.array(np.zeros(episodes.num_rows, np.int32)))
     return episodes, shards.read_table(location, "maps")
 
 
