@@ -333,8 +333,7 @@ class _Slot:
         self.plans: list[np.ndarray] = []
         self.last: np.ndarray | None = None  # the plan (N, H, 2) chosen at the last re-plan (plan.keep_previous)
         self.plan_steps: list[int] = []
-        self.reached = bool(np.linalg.norm(self.hist[-1][task.leader].astype(np.float64) - task.goal)
-                            <= ro.tc.eps_goal)  # a prefix may end at the goal already
+        self.reached = self.at_goal()  # a prefix may end at the goal already
         self.holds = 0  # re-plans where no candidate was clean and the team held position
         self.subgoal_left = 0  # re-plans left toward the sub-goal (plan.subgoal_after_hold)
         self.padded_known = gm.padded
@@ -410,18 +409,21 @@ class _Slot:
             self.plans.append(plan.astype(np.float32))
             self.plan_steps.append(len(self.hist) - 1)
         prev = self.q.copy()
-        leader, goal = self.task.leader, np.asarray(self.task.goal, np.float64)
         for j in range(pc.replan_every):
             for k in range(1, cfg.interval + 1):
                 step = step_toward(self.q, prev, plan[:, j], k, cfg.interval, tc.max_step)
                 self.hist.append((self.q + step).astype(np.float32))
                 self.q = self.hist[-1].astype(np.float64)
-                # the metric's reach test on the stored (float32) positions
-                if np.linalg.norm(self.hist[-1][leader].astype(np.float64) - goal) <= tc.eps_goal:
+                if self.at_goal():
                     self.reached = True
                 if self.finished:
                     return
             prev = plan[:, j].astype(np.float64)
+
+    def at_goal(self) -> bool:
+        """The metric's reach test on the last stored (float32) position of the leader."""
+        lead = self.hist[-1][self.task.leader].astype(np.float64)
+        return bool(np.linalg.norm(lead - np.asarray(self.task.goal, np.float64)) <= self.ro.tc.eps_goal)
 
     def info(self) -> dict:
         return {"reached": self.reached, "limit": self.limit, "holds": self.holds, "plan_steps": self.plan_steps,
