@@ -33,7 +33,7 @@ from roken.train.data import check_dataset
 from roken.train.loop import Pretraining, PretrainSpec, summary_table
 
 # Sections that must match to resume a run; train.steps and the logging cadence may change (extend a run).
-RESUME_SECTIONS = ("model", "diffusion", "samples", "loss")
+RESUME_SECTIONS = ("model", "diffusion", "samples", "loss", "selfcost")
 RESUME_TRAIN_KEYS = ("batch_size", "lr", "weight_decay", "warmup_steps", "schedule", "min_lr_ratio", "grad_clip",
                      "ema_decay", "seed", "val_fraction")
 

@@ -16,6 +16,7 @@ from .model.dit import ModelConfig
 from .model.losses import LossConfig
 from .plan.rollout import PlanConfig
 from .rl.config import RLConfig
+from .rl.selfcost import SelfCostConfig
 from .train.loop import TrainConfig
 from .world.maps import MapConfig
 from .world.tasks import TaskConfig
@@ -38,6 +39,7 @@ class Config:
     plan: PlanConfig = field(default_factory=PlanConfig)  # Roken as a planner in closed loop (roken/plan)
     rl: RLConfig = field(default_factory=RLConfig)  # GRPO post-training (roken/rl)
     dagger: DaggerConfig = field(default_factory=DaggerConfig)  # DAgger rounds (roken/dagger)
+    selfcost: SelfCostConfig = field(default_factory=SelfCostConfig)  # the cost of the model's own samples (roken/rl)
 
 
 def load_config(path=None, overrides: list[str] | None = None) -> Config:

@@ -30,6 +30,7 @@ from ..model.diffusion import DiffusionConfig, NoiseSchedule
 from ..model.dit import ModelConfig, RokenDiT, check as check_model
 from ..model.losses import LossConfig, check as check_loss, pretraining_loss
 from ..plan.rollout import PlanConfig
+from ..rl.selfcost import SelfCost, SelfCostConfig
 from ..world.maps import MapConfig
 from ..world.tasks import TaskConfig
 from . import checkpoint as ckpt
@@ -101,10 +102,12 @@ class PretrainSpec:
     task: TaskConfig = field(default_factory=TaskConfig)
     plan: PlanConfig = field(default_factory=PlanConfig)  # the closed-loop validation's planner settings
     map: MapConfig = field(default_factory=MapConfig)  # the `val` maps of the closed-loop validation
+    selfcost: SelfCostConfig = field(default_factory=SelfCostConfig)  # the cost of the model's own samples
 
     @classmethod
     def of(cls, cfg) -> "PretrainSpec":
-        return cls(cfg.train, cfg.model, cfg.diffusion, cfg.samples, cfg.loss, cfg.task, cfg.plan, cfg.map)
+        return cls(cfg.train, cfg.model, cfg.diffusion, cfg.samples, cfg.loss, cfg.task, cfg.plan, cfg.map,
+                   cfg.selfcost)
 
 
 def lr_factor(step: int, cfg: TrainConfig) -> float:
@@ -162,6 +165,8 @@ class Pretraining:
         self.init = init
         self.log_stream = log_stream
         self.amp = (t.precision == "bf16") or (t.precision == "auto" and self.device.type == "cuda")
+        self.selfcost = SelfCost(spec.selfcost, spec.samples, spec.plan, spec.task) if spec.selfcost.weight > 0 \
+            else None
 
     # -- model, optimizer, state -------------------------------------------------------------------------
     def _build(self):
@@ -237,6 +242,7 @@ class Pretraining:
     def config_dict(self, validation: dict | None = None) -> dict:
         return {"model": asdict(self.spec.model), "diffusion": asdict(self.spec.diffusion),
                 "samples": asdict(self.spec.samples), "loss": asdict(self.spec.loss), "train": asdict(self.spec.train),
+                "selfcost": asdict(self.spec.selfcost),
                 "task": asdict(self.spec.task), "dataset": fingerprint(self.data), "code_version": code_version(),
                 "step": self.step, "ema_offset": self.ema_offset, "init": self.init, "world_size": self.world, "validation": validation or {},
                 "kind": "roken-pretraining"}
@@ -247,6 +253,11 @@ class Pretraining:
         with torch.autocast(self.device.type, dtype=torch.bfloat16) if self.amp else nullcontext():
             loss, logs = pretraining_loss(self.net, self.noise, batch, self.spec.loss, self.spec.samples,
                                           step=self.step, draws=t.noise_draws)
+            if self.selfcost is not None:
+                # the bare module (not the DDP wrapper): its gradient joins the same backward, whose hooks average it
+                extra, extra_logs = self.selfcost(self.model, self.noise, self.step)
+                loss, logs = loss + extra, logs | extra_logs
+                logs["losses/total"] = loss.detach()
         if not torch.isfinite(loss):  # stop before a non-finite backward (lr 1e12 segfaulted there)
             bad = [k[7:] for k, v in logs.items() if k != "losses/total" and not torch.isfinite(v)]
             raise Diverged(f"training diverged at step {self.step}: the loss is {float(loss.detach())} (non-finite terms: "
@@ -341,8 +352,9 @@ class Pretraining:
                                                                             self.train_seconds / t.time_budget_s)
                 log.print(f"[pretrain] step {self.step}/{t.steps} ({100 * done:.1f}%) "
                           f"loss {metrics['losses/total']:.4f} traj {metrics['losses/traj']:.4f}"
-                          + "".join(f" {k[7:]} {metrics[k]:.4f}"
-                                    for k in ("losses/wp", "losses/occ", "losses/sdf", "losses/sep")
+                          + "".join(f" {k.split('/')[-1]} {metrics[k]:.4f}"
+                                    for k in ("losses/wp", "losses/occ", "losses/sdf", "losses/sep", "losses/selfcost",
+                                              "selfcost/violating")
                                     if k in metrics)
                           + f" | {rate:.0f} samples/s, data wait {100 * metrics['charts/data_wait_frac']:.0f}%, "
                           f"lr {metrics['charts/lr']:.2e}, ETA {duration(eta)}")
