@@ -13,6 +13,7 @@ from safetensors.torch import load_file
 
 from roken.config import load_config
 from roken.dagger import run_dagger, select_states
+from roken.dagger.rounds import round_config
 from roken.dagger.relabel import constraint_steps, feasible_steps
 from roken.expert.laplacian import ExpertConfig, LaplacianExpert
 from roken.train.data import load_banks
@@ -216,3 +217,16 @@ def test_relabels_can_carry_the_learners_last_moves_as_history():
     s = make_sample(bank, 0, Spy(0, first=4), cfg)  # the chunk at the relabelled state
     np.testing.assert_allclose(s["prev_move"][:3], (P[t] - P[t - 4]) / cfg.step_scale, atol=1e-5)
     assert np.abs(s["prev_move"][:3]).max() > 0.05, "the learner moved into the state: not the at-rest zero"
+
+
+def test_a_round_with_the_selfcost_term_reads_the_learners_own_rollouts(expert_dataset, tmp_path):
+    model = _tiny_model(expert_dataset, tmp_path / "pre")
+    cfg = load_config(None, TINY + ["selfcost.weight=0.1", "selfcost.prompts=2", "selfcost.candidates=2",
+                                    "selfcost.steps=2", "selfcost.state_every=4"])
+    a = _run(cfg, model, expert_dataset, tmp_path / "a")
+    from roken.train import checkpoint as ckpt
+    used = ckpt.read_config(a["checkpoint"])
+    assert used["selfcost"]["states"] == str(tmp_path / "a" / "round-00" / "rollouts")  # every round so far
+    assert round_config(cfg, model, tmp_path / "a", 2).selfcost.states.split(",") == \
+        [str(tmp_path / "a" / f"round-{k:02d}" / "rollouts") for k in range(3)]
+    assert round_config(load_config(None, TINY), model, tmp_path / "a", 2).selfcost.states == ""  # off: none

@@ -39,7 +39,7 @@ def round_dir(out: str | Path, r: int) -> Path:
 def run_config(cfg, checkpoint: str, data: str, val_data: str | None) -> dict:
     """What a DAgger run folder is made of; a re-run with other values is refused (rounds may be raised)."""
     sections = {k: json.loads(json.dumps(asdict(getattr(cfg, k)), default=str))
-                for k in ("dagger", "model", "diffusion", "samples", "loss", "task", "expert", "plan")}
+                for k in ("dagger", "model", "diffusion", "samples", "loss", "task", "expert", "plan", "selfcost")}
     sections["dagger"].pop("rounds")
     sections["train"] = {k: v for k, v in asdict(cfg.train).items()
                          if k not in ("steps", "log_every", "loader_workers", "device", "time_budget_s")}
@@ -50,7 +50,14 @@ def check_run(out: str | Path, cfg, checkpoint: str, data: str, val_data: str | 
     path = Path(out) / "dagger.json"
     new = json.loads(json.dumps(run_config(cfg, checkpoint, data, val_data), default=str))
     if path.is_file():
-        changed = changed_keys(read_json(path), new)
+        from ..config import Config  # (the root config imports this package)
+
+        # options newer than the run folder: their defaults, so an older run resumes as it was made
+        defaults = json.loads(json.dumps(run_config(Config(), checkpoint, data, val_data), default=str))
+        old = read_json(path)
+        old = {k: defaults[k] | old[k] if isinstance(defaults.get(k), dict) and isinstance(old.get(k), dict)
+               else old.get(k, defaults.get(k)) for k in set(defaults) | set(old)}
+        changed = changed_keys(old, new)
         if changed:
             raise ValueError(f"{out} holds a DAgger run made with other settings ({'; '.join(changed[:6])}); its "
                              f"rounds are kept. Use a new --out, or the old settings to resume it (--rounds may grow)")
@@ -87,10 +94,14 @@ def relabel_round(cfg, dc: DaggerConfig, r: int, rollouts: Path, out: Path) -> d
     return stats
 
 
-def round_config(cfg, model: str):
+def round_config(cfg, model: str, out: Path | None = None, r: int = 0):
     """The root config of a round's training: `dagger.steps_per_round` steps, validated (open and closed loop)
-    at the end, no time budget, and no warm-up when the optimizer moments come with the model."""
+    at the end, no time budget, and no warm-up when the optimizer moments come with the model. With the
+    `selfcost` term on and no `selfcost.states` of its own, its states are the rollouts of every round so far
+    (the learner's own states, refreshed each round: the term is on-policy as the relabels are)."""
     c = copy.deepcopy(cfg)
+    if c.selfcost.weight > 0 and not c.selfcost.states.strip() and out is not None:
+        c.selfcost.states = ",".join(str(round_dir(out, k) / "rollouts") for k in range(r + 1))
     t, n = c.train, cfg.dagger.steps_per_round
     t.steps, t.closed_loop_every, t.eval_every, t.time_budget_s = n, n, n, 0.0
     t.checkpoint_every = min(t.checkpoint_every, n)
@@ -160,7 +171,7 @@ def run_dagger(cfg, checkpoint: str, data: str, out: str | Path, make_runner, tr
             f"{stats['expert_success']:.3f}" + (f"; {stats['self']} successful rollouts kept as executed"
                                            if stats.get("self") else ""))
         datasets, shares = mix(data, out, r, dc.share)
-        t_train = train(round_config(cfg, model), datasets, shares, str(d / "train"), val_data, model)
+        t_train = train(round_config(cfg, model, out, r), datasets, shares, str(d / "train"), val_data, model)
         val = t_train.get("validation", {})
         s = {"round": r, "rollouts": stats["rollouts"], "rollout_success": ro["full_success"],
              "rollout_reach": ro["reach"], "states": stats["states"], "refused": stats["refused"],
