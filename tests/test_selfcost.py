@@ -41,8 +41,8 @@ def test_descending_the_term_lowers_the_cost_of_the_models_own_samples(expert_da
     term = SelfCost(cfg.selfcost, cfg.samples, cfg.plan, cfg.task)
     first, logs = term(model, sched, step=7)
     again, _ = term(model, sched, step=7)
-    assert float(first) == pytest.approx(float(again), rel=1e-5)  # a step's draws come from the step alone
-    assert {"losses/selfcost", "selfcost/violating"} <= set(logs) and float(first) > 0
+    assert first.item() == pytest.approx(again.item(), rel=1e-5)  # a step's draws come from the step alone
+    assert {"losses/selfcost", "selfcost/violating"} <= set(logs) and first.item() > 0
     first.backward()
     assert sum(float(p.grad.norm()) for p in model.parameters() if p.grad is not None) > 0
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
@@ -54,7 +54,7 @@ def test_descending_the_term_lowers_the_cost_of_the_models_own_samples(expert_da
     after, _ = term(model, sched, step=7)
     # (an untrained model's clean chunks sit on the sampler's clip, where they have no gradient: a part of the cost
     # cannot move; measured 674 -> 606)
-    assert float(after) < 0.95 * float(first)
+    assert after.item() < 0.95 * first.item()
 
 
 def test_a_pretraining_run_carries_the_term(expert_dataset, tmp_path):
