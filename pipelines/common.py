@@ -114,6 +114,23 @@ def local_run_folder(out: str, what: str, file_hint: str = "") -> str:
     return path
 
 
+def selfcost_states(cfg, need_states: bool = True) -> None:
+    """The `selfcost` term's rollout folders, checked before anything is written and made absolute (Ray workers
+    have another cwd). need_states=False: none given is fine (DAgger uses each round's rollouts)."""
+    from roken.data.store import StoreError
+    from roken.rl.selfcost import check
+
+    check(cfg.selfcost, need_states)
+    if cfg.selfcost.weight <= 0:
+        return
+    folders = [absolute(f.strip()) for f in cfg.selfcost.states.split(",") if f.strip()]
+    for f in folders:
+        if "://" not in f and not (Path(f) / "episodes").is_dir():
+            raise StoreError(f"selfcost.states: {f} is not a folder of closed-loop rollouts (no episodes/ in it); "
+                             f"make one with pipelines/evaluate.py --planner roken --maps train --out DIR")
+    cfg.selfcost.states = ",".join(folders)
+
+
 def absolute(location: str | None) -> str | None:
     """A local path made absolute (Ray workers have another cwd); URIs and None as they are."""
     return location if location is None or "://" in location else os.path.abspath(location)

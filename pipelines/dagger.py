@@ -21,7 +21,7 @@ import sys
 from pathlib import Path
 
 from common import (ROOT, USER_ERRORS, absolute, add_common_args, fail, local_run_folder, make_runner,
-                    named_overrides, wants_ray)
+                    named_overrides, selfcost_states, wants_ray)
 
 from roken.config import load_config
 from roken.configtools import to_dict
@@ -82,6 +82,7 @@ def main(argv=None) -> int:
         sets = named_overrides(args, "dagger", ("rounds", "episodes", "steps_per_round", "share"))
         cfg = from_checkpoint(load_config(args.config, sets), args.checkpoint)
         args.data, args.val_data = absolute(args.data), absolute(args.val_data)
+        selfcost_states(cfg, need_states=False)  # its own states, if given (else each round's rollouts)
         check_dataset(args.data, "--data")
         if args.val_data:
             check_dataset(args.val_data, "--val-data")

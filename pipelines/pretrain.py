@@ -21,7 +21,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from common import (ROOT, USER_ERRORS, absolute, add_common_args, fail, interrupted, local_run_folder,
-                    named_overrides, wants_ray)
+                    named_overrides, selfcost_states, wants_ray)
 
 from roken.config import Config, load_config
 from roken.configtools import to_dict
@@ -106,6 +106,7 @@ def main(argv=None) -> int:
         cfg = load_config(args.config, overrides(args))
         out = local_run_folder(args.out, "pretraining", "run folder (a new or an existing run)")
         args.data, args.val_data = absolute(args.data), absolute(args.val_data)
+        selfcost_states(cfg)
         if args.init:
             # a bad checkpoint fails here, before any write; absolute, since Ray workers run elsewhere
             args.init = str(ckpt.find(args.init).resolve())

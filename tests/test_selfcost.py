@@ -1,6 +1,8 @@
 """The constraint cost of the model's own samples (roken/rl/selfcost.py): its states are the feasible ones of the
 rollouts given, a step's draws depend only on the step (a resumed run repeats them), descending it lowers the
 cost of the model's samples, and a pretraining run carries it beside the denoising loss."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -12,6 +14,7 @@ from roken.model.dit import RokenDiT
 from roken.rl.selfcost import SelfCost, SelfCostConfig, check, visited_states
 from roken.train.loop import Pretraining, PretrainSpec
 
+ROOT = Path(__file__).resolve().parents[1]
 TINY = ["model.width=64", "model.depth=2", "model.heads=4", "model.mlp_hidden=128", "model.map_channels=16",
         "model.map_blocks=1", "model.map_encoder=patch", "train.batch_size=4", "train.loader_workers=0",
         "train.val_fraction=0.34", "train.val_prompts=2", "train.log_every=1", "train.warmup_steps=0",
@@ -63,3 +66,17 @@ def test_a_pretraining_run_carries_the_term(expert_dataset, tmp_path):
     assert summary["steps"] == 2 and summary["final"]["losses/selfcost"] > 0
     from roken.train import checkpoint as ckpt
     assert ckpt.read_config(summary["checkpoint"])["selfcost"]["weight"] == 0.1
+
+
+@pytest.mark.parametrize("script,extra", [("pretrain.py", []),
+                                          ("dagger.py", ["--checkpoint", str(ROOT / "models" / "roken-cpu-four")])])
+def test_the_pipelines_name_a_bad_states_folder_before_writing(expert_dataset, tmp_path, script, extra):
+    from conftest import cli
+    args = ["--data", expert_dataset, "--out", str(tmp_path / "out"), "--workers", "0", "--set", "selfcost.weight=0.1",
+            "--set", f"selfcost.states={tmp_path / 'missing'}"] + extra
+    r = cli(script, *args)
+    assert r.returncode == 2 and "selfcost.states" in r.stderr and "is not a folder of closed-loop rollouts" in r.stderr, \
+        r.stderr
+    assert not (tmp_path / "out").exists()
+    r = cli("pretrain.py", *args[:6], "--set", "selfcost.weight=0.1")  # on, but no states given
+    assert r.returncode == 2 and "selfcost.weight > 0 needs selfcost.states" in r.stderr, r.stderr

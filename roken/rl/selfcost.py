@@ -51,10 +51,11 @@ class SelfCostConfig:
     seed: int = 0
 
 
-def check(sc: SelfCostConfig) -> None:
+def check(sc: SelfCostConfig, need_states: bool = True) -> None:
+    """need_states=False: the caller supplies them (DAgger: each round's rollouts)."""
     if sc.weight < 0:
         raise ValueError(f"selfcost.weight={sc.weight}: must be >= 0 (0 = off)")
-    if sc.weight > 0 and not sc.states.strip():
+    if sc.weight > 0 and need_states and not sc.states.strip():
         raise ValueError("selfcost.weight > 0 needs selfcost.states: evaluation folders of closed-loop rollouts on "
                          "train maps (pipelines/evaluate.py --maps train --out DIR, or a DAgger round's rollouts/)")
     for k in ("prompts", "candidates", "steps", "grad_steps", "state_every"):
@@ -88,8 +89,9 @@ def visited_states(folders: list[str], tc: TaskConfig, every: int) -> tuple[dict
 class SelfCost:
     """Call it with the model (training mode) at an optimizer step: (weighted loss, log figures)."""
 
-    def __init__(self, sc: SelfCostConfig, samples: SampleConfig, pc: PlanConfig, tc: TaskConfig):
+    def __init__(self, sc: SelfCostConfig, samples: SampleConfig, pc: PlanConfig, tc: TaskConfig, rank: int = 0):
         check(sc)
+        self.rank = rank  # Ray Train workers draw different states (their gradients are averaged)
         self.sc, self.samples, self.pc, self.tc = sc, samples, replace(pc, guide_goal=sc.goal, guide_follow=0.0), tc
         folders = [f.strip() for f in sc.states.split(",") if f.strip()]
         self.maps, self.episodes, self.states = visited_states(folders, tc, sc.state_every)
@@ -119,7 +121,8 @@ class SelfCost:
 
     def __call__(self, model, sched: NoiseSchedule, step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         sc, G = self.sc, self.sc.candidates
-        rng = np.random.default_rng([sc.seed, step])  # the step's draws: a resumed run repeats them
+        # the step's draws (a resumed run repeats them), and each worker's own
+        rng = np.random.default_rng([sc.seed, step] + ([self.rank] if self.rank else []))
         conds, eps = self.prompts(rng)
         dev = next(model.parameters()).device
         batch = {k: torch.from_numpy(np.stack([c[k] for c in conds])).to(dev) for k in COND_KEYS + ("map", "chunk")}

@@ -165,8 +165,9 @@ class Pretraining:
         self.init = init
         self.log_stream = log_stream
         self.amp = (t.precision == "bf16") or (t.precision == "auto" and self.device.type == "cuda")
-        self.selfcost = SelfCost(spec.selfcost, spec.samples, spec.plan, spec.task) if spec.selfcost.weight > 0 \
-            else None
+        self.selfcost = None  # the constraint cost of the model's own samples, beside the denoising loss
+        if spec.selfcost.weight > 0:
+            self.selfcost = SelfCost(spec.selfcost, spec.samples, spec.plan, spec.task, self.rank)
 
     # -- model, optimizer, state -------------------------------------------------------------------------
     def _build(self):
