@@ -84,17 +84,23 @@ def feasible_steps(positions: np.ndarray, gm: GridMap, tc: TaskConfig) -> np.nda
     return constraint_steps(positions, gm, tc).all(axis=0)
 
 
+def feasible_span(positions: np.ndarray, gm: GridMap, goal: np.ndarray, leader: int, tc: TaskConfig
+                  ) -> tuple[int, int]:
+    """(the first infeasible step, T+1 if none; the end of the states worth learning from: that step or the
+    leader's arrival at the goal, the earlier)."""
+    bad = np.flatnonzero(~feasible_steps(positions, gm, tc))
+    first_bad = int(bad[0]) if len(bad) else len(positions)
+    reached = np.flatnonzero(np.linalg.norm(positions[:, leader] - goal, axis=-1) <= tc.eps_goal)
+    return first_bad, min(first_bad, int(reached[0]) if len(reached) else len(positions))
+
+
 def select_states(positions: np.ndarray, gm: GridMap, goal: np.ndarray, leader: int, tc: TaskConfig,
                   every: int, max_states: int) -> list[int]:
     """The steps of a rollout to relabel: the last feasible step before the first violation (if it failed),
     then every `every` steps before it, the later first (nearer the failure), at most `max_states`; steps
     after the leader reached its goal are not taken (nothing to learn there)."""
-    ok = feasible_steps(positions, gm, tc)
-    bad = np.flatnonzero(~ok)
-    first_bad = int(bad[0]) if len(bad) else len(ok)
-    reached = np.flatnonzero(np.linalg.norm(positions[:, leader] - goal, axis=-1) <= tc.eps_goal)
-    end = min(first_bad, int(reached[0]) if len(reached) else len(ok))
-    chosen = [first_bad - 1] if 1 <= first_bad <= end and first_bad < len(ok) else []
+    first_bad, end = feasible_span(positions, gm, goal, leader, tc)
+    chosen = [first_bad - 1] if 1 <= first_bad <= end and first_bad < len(positions) else []
     chosen += [t for t in range(every, end, every)[::-1] if t not in chosen]
     return sorted(chosen[:max_states])
 

@@ -165,12 +165,14 @@ def ddim_steps(K: int, steps: int) -> list[int]:
 
 @torch.no_grad()
 def ddim_sample(model: RokenDiT, sched: NoiseSchedule, prompt: Prompt, steps: int = 10, eta: float = 0.0,
-                generator: torch.Generator | None = None, noise=None, guide=None, guide_steps: int = 0) -> Rollout:
+                generator: torch.Generator | None = None, noise=None, guide=None, guide_steps: int = 0,
+                stop: int | None = None) -> Rollout:
     """DDIM (Song et al.) over `steps` evenly spaced diffusion steps; eta = 0 is deterministic. `guide(x0, given,
-    fixed)` (roken.plan.guidance) moves the predicted clean chunk at the last `guide_steps` steps."""
+    fixed)` (roken.plan.guidance) moves the predicted clean chunk at the last `guide_steps` steps. `stop`: only
+    the first `stop` steps, the latent there returned as `chunk` (the `selfcost` term grades the next step)."""
     x = _randn(prompt.given.shape, generator, prompt.given.device, noise)
     seq = ddim_steps(sched.K, steps)
-    for i, k in enumerate(seq):
+    for i, k in enumerate(seq[:stop]):
         eps, ks = _eps(model, prompt, x, k)
         a = sched.abar[k]
         a_prev = sched.abar[seq[i + 1]] if i + 1 < len(seq) else torch.ones((), device=x.device)

@@ -11,8 +11,8 @@ weights, in the manner of reward fine-tuning through the sampler (DRaFT, Clark e
 optimizer step draws `prompts` visited states x `candidates` noises, runs DDIM without gradients to one of the
 `grad_steps` steps before the last, and differentiates the cost of that step's predicted clean chunk (truncated
 back-propagation: one model call carries the gradient; late in a deterministic DDIM chain the predicted clean
-chunk is the sample the planner will return, give or take the last steps' small corrections). The expert's denoising loss stays beside it as the
-anchor that keeps the model an imitation of the expert.
+chunk is the sample the planner will return, give or take the last steps' small corrections). The expert's
+denoising loss stays beside it as the anchor that keeps the model an imitation of the expert.
 
 States come from evaluation folders of rollouts on `train` maps (`pipelines/evaluate.py --maps train`, or the
 `rollouts/` of DAgger rounds): every `state_every` simulator steps up to the first violation (the feasible states
@@ -27,7 +27,7 @@ import torch
 
 from ..data.condition import build_condition
 from ..data.samples import SampleConfig
-from ..model.diffusion import COND_KEYS, NoiseSchedule, ddim_steps, make_prompt
+from ..model.diffusion import COND_KEYS, NoiseSchedule, ddim_sample, ddim_steps, make_prompt
 from ..model.losses import decode_chunk, sdf_at
 from ..plan.guidance import Guide, finite_geodesic
 from ..plan.rollout import PlanConfig
@@ -63,10 +63,11 @@ def check(sc: SelfCostConfig, need_states: bool = True) -> None:
             raise ValueError(f"selfcost.{k}={getattr(sc, k)}: must be >= 1")
 
 
-def visited_states(folders: list[str], tc: TaskConfig, every: int) -> tuple[dict, list[dict], list[tuple[int, int]]]:
+def visited_states(folders: list[str], tc: TaskConfig, every: int
+                   ) -> tuple[dict, list[dict], list[tuple[int, int]]]:
     """The feasible states of the rollouts in `folders`: (maps by id, episodes, [(episode, t)]) with one state
     every `every` steps before each episode's first violation or the leader's arrival."""
-    from ..dagger.relabel import feasible_steps  # dagger sits above plan and rl; imported where it is used
+    from ..dagger.relabel import feasible_span  # dagger sits above plan and rl; imported where it is used
     from ..data.store import read_run
 
     maps, episodes, states = {}, [], []
@@ -75,13 +76,8 @@ def visited_states(folders: list[str], tc: TaskConfig, every: int) -> tuple[dict
         maps.update(m)
         episodes += eps
     for e, ep in enumerate(episodes):
-        P = np.asarray(ep["positions"], np.float64)
-        ok = feasible_steps(P, maps[ep["map_id"]], tc)
-        bad = np.flatnonzero(~ok)
-        end = int(bad[0]) if len(bad) else len(P)
-        goal, leader = np.asarray(ep["goal"], np.float64), int(ep["leader"])
-        reached = np.flatnonzero(np.linalg.norm(P[:, leader] - goal, axis=-1) <= tc.eps_goal)
-        end = min(end, int(reached[0]) if len(reached) else end)
+        _, end = feasible_span(np.asarray(ep["positions"], np.float64), maps[ep["map_id"]],
+                               np.asarray(ep["goal"], np.float64), int(ep["leader"]), tc)
         states += [(e, t) for t in range(0, end, every)]
     return maps, episodes, states
 
@@ -128,24 +124,15 @@ class SelfCost:
         batch = {k: torch.from_numpy(np.stack([c[k] for c in conds])).to(dev) for k in COND_KEYS + ("map", "chunk")}
         prompt = make_prompt(model, {k: batch[k] for k in COND_KEYS + ("map",)}, batch["chunk"], G)
         gen = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
-        x = torch.randn(prompt.given.shape, generator=gen).to(dev)  # (B G, R, H, 2)
         seq = ddim_steps(sched.K, sc.steps)
         # the graded step: one of the grad_steps before the last (the last, k = 0, scales the noise prediction by
         # sqrt(1 - abar_0) ~ 0.01: its clean chunk hardly depends on the weights, so its gradient is nil)
         graded = max(len(seq) - 2 - int(rng.integers(min(sc.grad_steps, len(seq) - 1))), 0)
-
-        def x0_at(i: int, x: torch.Tensor) -> torch.Tensor:
-            ks = torch.full((x.shape[0],), seq[i], device=dev, dtype=torch.long)
-            e = model(x, ks, prompt.cond, ctx=prompt.ctx)["eps"]
-            return sched.predict_x0(x, ks, e)
-
-        with torch.no_grad():  # DDIM (eta = 0) to the graded step, as the planner samples
-            for i in range(graded):
-                x0 = x0_at(i, x)
-                a, a_prev = sched.abar[seq[i]], sched.abar[seq[i + 1]]
-                e = (x - a.sqrt() * x0) / (1 - a).sqrt()
-                x = a_prev.sqrt() * x0 + (1 - a_prev).sqrt() * e
-        x0 = x0_at(graded, x.detach())
+        # DDIM (eta = 0) to the graded step without gradients, as the planner samples; then one model call with them
+        x = ddim_sample(model, sched, prompt, sc.steps, noise=lambda shape: torch.randn(shape, generator=gen),
+                        stop=graded).chunk  # (B G, R, H, 2)
+        ks = torch.full((x.shape[0],), seq[graded], device=dev, dtype=torch.long)
+        x0 = sched.predict_x0(x, ks, model(x, ks, prompt.cond, ctx=prompt.ctx)["eps"])
         start = prompt.cond["start"]
         p = decode_chunk(x0, start, self.samples)  # (B G, R, H, 2) metres
         real = np.stack([c["robot_mask"] for c in conds])

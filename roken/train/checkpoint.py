@@ -13,11 +13,13 @@ from __future__ import annotations
 import json
 import math
 import os
+import random
 import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
@@ -261,3 +263,21 @@ def moments_without(saved: dict, model: torch.nn.Module, opt: torch.optim.Optimi
     groups = [{**g, "params": [new_index[n] for n in group]} for g, group in zip(saved["param_groups"], names)]
     state = {new_index[n]: saved["state"][i] for n, i in old_index.items() if i in saved["state"]}
     return {"state": state, "param_groups": groups}
+
+
+# The process's RNG states, as tensors / plain lists, so train_state.pt loads with weights_only=True.
+def rng_state() -> dict:
+    s = np.random.get_state()
+    v, internal, g = random.getstate()
+    numpy = {"keys": torch.from_numpy(s[1].astype(np.int64)), "pos": int(s[2]), "gauss": [int(s[3]), float(s[4])]}
+    return {"torch": torch.get_rng_state(), "numpy": numpy, "python": [v, list(internal), g],
+            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []}
+
+
+def set_rng_state(s: dict) -> None:
+    torch.set_rng_state(s["torch"])
+    if s.get("cuda") and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(s["cuda"])
+    n = s["numpy"]
+    np.random.set_state(("MT19937", n["keys"].numpy().astype(np.uint32), n["pos"], n["gauss"][0], n["gauss"][1]))
+    random.setstate((s["python"][0], tuple(s["python"][1]), s["python"][2]))

@@ -12,13 +12,11 @@ from __future__ import annotations
 import copy
 import json
 import math
-import random
 import time
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from ..data.build import changed_keys, code_version
@@ -193,8 +191,7 @@ class Pretraining:
     def state(self) -> dict:
         return {"model": self.model.state_dict(), "ema": self.ema.state_dict(), "optimizer": self.opt.state_dict(),
                 "scheduler": self.sched.state_dict(), "step": self.step, "ema_offset": self.ema_offset, "train_seconds": self.train_seconds,
-                "rng": {"torch": torch.get_rng_state(), "numpy": _np_state(), "python": _py_state(),
-                        "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else []}}
+                "rng": ckpt.rng_state()}
 
     def load_state(self, s: dict) -> None:
         self.model.load_state_dict(s["model"])
@@ -204,11 +201,7 @@ class Pretraining:
         self.step = int(s["step"])
         self.ema_offset = int(s.get("ema_offset", 0))
         self.train_seconds = float(s.get("train_seconds", 0.0))
-        torch.set_rng_state(s["rng"]["torch"])
-        if s["rng"].get("cuda") and torch.cuda.is_available():
-            torch.cuda.set_rng_state_all(s["rng"]["cuda"])
-        _set_np_state(s["rng"]["numpy"])
-        _set_py_state(s["rng"]["python"])
+        ckpt.set_rng_state(s["rng"])
 
     def _load_init(self, path: str) -> None:
         """Start from another run's checkpoint (DAgger's rounds): its weights and EMA, and its optimizer moments
@@ -420,25 +413,6 @@ def _autocast(device: torch.device, amp: bool):
 
 def _scalars(d: dict) -> dict:
     return {k: float(v) for k, v in d.items()}
-
-
-# RNG states as tensors / plain lists, so train_state.pt loads with weights_only=True.
-def _np_state() -> dict:
-    s = np.random.get_state()
-    return {"keys": torch.from_numpy(s[1].astype(np.int64)), "pos": int(s[2]), "gauss": [int(s[3]), float(s[4])]}
-
-
-def _set_np_state(s: dict) -> None:
-    np.random.set_state(("MT19937", s["keys"].numpy().astype(np.uint32), s["pos"], s["gauss"][0], s["gauss"][1]))
-
-
-def _py_state() -> list:
-    v, internal, g = random.getstate()
-    return [v, list(internal), g]
-
-
-def _set_py_state(s: list) -> None:
-    random.setstate((s[0], tuple(s[1]), s[2]))
 
 
 def summary_table(summary: dict) -> str:
