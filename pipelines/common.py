@@ -118,10 +118,10 @@ def selfcost_states(cfg, need_states: bool = True) -> None:
     """The `selfcost` term's rollout folders, checked before anything is written and made absolute (Ray workers
     have another cwd). need_states=False: none given is fine (DAgger uses each round's rollouts)."""
     from roken.data.store import StoreError
-    from roken.rl.selfcost import check
+    from roken.rl.selfcost import active, check
 
     check(cfg.selfcost, need_states)
-    if cfg.selfcost.weight <= 0:
+    if not active(cfg.selfcost):
         return
     folders = [absolute(f.strip()) for f in cfg.selfcost.states.split(",") if f.strip()]
     for f in folders:

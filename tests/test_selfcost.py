@@ -1,6 +1,7 @@
 """The constraint cost of the model's own samples (roken/rl/selfcost.py): its states are the feasible ones of the
 rollouts given, a step's draws depend only on the step (a resumed run repeats them), descending it lowers the
 cost of the model's samples, and a pretraining run carries it beside the denoising loss."""
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -79,4 +80,70 @@ def test_the_pipelines_name_a_bad_states_folder_before_writing(expert_dataset, t
         r.stderr
     assert not (tmp_path / "out").exists()
     r = cli("pretrain.py", *args[:6], "--set", "selfcost.weight=0.1")  # on, but no states given
-    assert r.returncode == 2 and "selfcost.weight > 0 needs selfcost.states" in r.stderr, r.stderr
+    assert r.returncode == 2 and "needs selfcost.states" in r.stderr, r.stderr
+
+
+def test_the_guided_target_pulls_the_models_samples_onto_their_guided_version(expert_dataset):
+    from roken.train import checkpoint as ckpt
+    cfg = load_config(None, TINY + [f"selfcost.states={expert_dataset}", "selfcost.distil=1",
+                                    "plan.guide_iters=2", "plan.guide_final_iters=5"])
+    # a trained model (an untrained one's clean chunks sit on the sampler's clip, where nothing can move them)
+    loaded = ckpt.load(ckpt.find(ROOT / "models" / "roken-cpu-four"), "cpu")
+    model, sched = loaded.model.train(), loaded.schedule
+    term = SelfCost(cfg.selfcost, loaded.samples, cfg.plan, cfg.task)
+    first, logs = term(model, sched, step=3)
+    again, _ = term(model, sched, step=3)
+    assert first.item() == pytest.approx(again.item(), rel=1e-5)  # the target is as repeatable as the sample
+    assert {"losses/distil", "selfcost/violating", "selfcost/target_violating"} <= set(logs) and "losses/selfcost" not in logs
+    assert 0 <= logs["selfcost/target_violating"].item() < 1 and first.item() > 0
+    opt = torch.optim.Adam(model.parameters(), lr=1e-4)
+    for _ in range(5):  # the target moves with the model; the distance to it must fall all the same
+        loss, _ = term(model, sched, step=3)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    after, _ = term(model, sched, step=3)
+    assert after.item() < 0.7 * first.item()
+    with pytest.raises(ValueError, match="selfcost.distil"):
+        check(SelfCostConfig(distil=-1.0, states=expert_dataset))
+    with pytest.raises(ValueError, match="needs selfcost.states"):
+        check(SelfCostConfig(distil=1.0))
+
+
+def test_no_feasible_target_gives_no_pull(expert_dataset):
+    cfg = load_config(None, TINY + [f"selfcost.states={expert_dataset}", "selfcost.distil=1",
+                                    "plan.guide_iters=1", "plan.guide_final_iters=1"])
+    torch.manual_seed(0)
+    term = SelfCost(cfg.selfcost, cfg.samples, cfg.plan, cfg.task)
+    term.tc = replace(cfg.task, d_obs_min=1000.0)  # (after the states are read) every point is too near an obstacle
+    loss, logs = term(RokenDiT(cfg.model), NoiseSchedule(cfg.diffusion), step=0)
+    assert loss.item() == 0 and logs["selfcost/target_violating"].item() == 1
+
+
+def test_the_cost_and_the_guided_target_add_up(expert_dataset):
+    from roken.train import checkpoint as ckpt
+    cfg = load_config(None, TINY + [f"selfcost.states={expert_dataset}", "selfcost.distil=2", "selfcost.weight=0.1",
+                                    "plan.guide_iters=1", "plan.guide_final_iters=2"])
+    loaded = ckpt.load(ckpt.find(ROOT / "models" / "roken-cpu-four"), "cpu")
+    loss, logs = SelfCost(cfg.selfcost, loaded.samples, cfg.plan, cfg.task)(loaded.model, loaded.schedule, step=1)
+    assert loss.item() == pytest.approx(0.1 * logs["losses/selfcost"].item() + 2 * logs["losses/distil"].item(),
+                                        rel=1e-4)
+
+
+def test_the_pace_hinge_pulls_only_a_leader_behind_schedule(expert_dataset):
+    from roken.plan.guidance import finite_geodesic
+    cfg = load_config(None, TINY + [f"selfcost.states={expert_dataset}", "selfcost.weight=1", "selfcost.pace=0.25"])
+    term = SelfCost(cfg.selfcost, cfg.samples, cfg.plan, cfg.task)
+    geo = torch.from_numpy(finite_geodesic(np.zeros((140, 140), bool), (120.0, 70.0)))[None].repeat(3, 1, 1)
+    H, step = cfg.samples.horizon, cfg.samples.interval
+    start = torch.tensor([[20.0, 70.0], [20.0, 40.0]]).repeat(3, 1, 1)  # (3, R=2, 2): robot 0 leads
+    t = step * torch.arange(1, H + 1, dtype=torch.float32)
+    speed = torch.tensor([0.5, 0.25, 0.0])[:, None, None]  # m per simulator step toward the goal (+x)
+    p = start[:, :, None].repeat(1, 1, H, 1)  # (3, 2, H, 2)
+    p[:, 0, :, 0] += (speed[:, 0] * t)
+    lag = term.behind(p, start, geo, torch.zeros(3, dtype=torch.long))
+    assert lag[0].item() == pytest.approx(0, abs=0.05) and lag[1].item() == pytest.approx(0, abs=0.05)
+    # standing still: behind by pace * t at every point, mean over the chunk
+    assert lag[2].item() == pytest.approx(float((0.25 * t).mean()), rel=0.02)
+    with pytest.raises(ValueError, match="selfcost.pace"):
+        check(SelfCostConfig(weight=1.0, states=expert_dataset, pace=-1))

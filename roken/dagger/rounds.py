@@ -26,6 +26,7 @@ from ..data.build import changed_keys, code_version
 from ..data.store import (SCHEMA_VERSION, atomic_write_json, atomic_write_table, episodes_table, maps_table,
                           read_json, read_run)
 from ..eval.harness import EvalConfig, evaluate
+from ..rl.selfcost import active
 from ..train import checkpoint as ckpt
 from .relabel import DaggerConfig, check, relabel
 
@@ -100,7 +101,7 @@ def round_config(cfg, model: str, out: Path | None = None, r: int = 0):
     `selfcost` term on and no `selfcost.states` of its own, its states are the rollouts of every round so far
     (the learner's own states, refreshed each round: the term is on-policy as the relabels are)."""
     c = copy.deepcopy(cfg)
-    if c.selfcost.weight > 0 and not c.selfcost.states.strip() and out is not None:
+    if active(c.selfcost) and not c.selfcost.states.strip() and out is not None:
         c.selfcost.states = ",".join(str(round_dir(out, k) / "rollouts") for k in range(r + 1))
     t, n = c.train, cfg.dagger.steps_per_round
     t.steps, t.closed_loop_every, t.eval_every, t.time_budget_s = n, n, n, 0.0

@@ -17,6 +17,18 @@ denoising loss stays beside it as the anchor that keeps the model an imitation o
 States come from evaluation folders of rollouts on `train` maps (`pipelines/evaluate.py --maps train`, or the
 `rollouts/` of DAgger rounds): every `state_every` simulator steps up to the first violation (the feasible states
 the model must leave feasibly), each with its last chunk move (`model.prev_move`).
+
+`distil` (a weight beside `weight`, or instead of it) distils the guided sampler rather than descending its cost (guidance distillation, as Meng et al.
+2023 distil classifier-free guidance): from the same noise, the planner's constraint-guided DDIM (the `plan`
+section's guidance, as `roken+guided` samples) gives the target, and the graded step's predicted clean chunk is
+regressed onto it (mean square over the real robots' points, in chunk units). The target is a small, feasible
+correction of the model's own sample, so the pull has no speed to trade for safety (the guided planner keeps the
+leader at its pace) and does not drift far from what the model already does; targets whose executed moves still
+break a constraint are dropped.
+
+`pace` turns the goal term into a hinge: only a leader that falls behind `pace` metres per simulator step along
+the free-space distance is pulled, so a leader on schedule is left to the constraint terms (a constant pull keeps
+rewarding speed beyond the expert's, which brings the violations back).
 """
 from __future__ import annotations
 
@@ -48,16 +60,31 @@ class SelfCostConfig:
     # the leader's goal term's weight (the guidance's plan.guide_goal is 2): the constraint terms alone are
     # cheapest for a team that stands still; the pull keeps the leader moving, the anchor does the rest
     goal: float = 0.5
+    # > 0: the goal term pulls only a leader that falls behind this pace (metres per simulator step along the
+    # free-space distance; the expert's leader: 0.29 on data/val4): ReLU(geo(p_h) - (geo(start) - pace t_h)),
+    # mean over the chunk, times `goal`. A constant pull keeps rewarding speed past the expert's, which buys the
+    # violations back; a pace hinge leaves a leader on schedule to the constraint terms. 0 = the constant pull
+    pace: float = 0.0
+    # weight of the guided target: the sample regressed onto the guided sampler's chunk from the same noise (the
+    # plan section's guidance, goal pull included, as `roken+guided` samples); 0 = off
+    distil: float = 0.0
     seed: int = 0
+
+
+def active(sc: SelfCostConfig) -> bool:
+    """Whether the term is on: its cost part, its guided target, or both."""
+    return sc.weight > 0 or sc.distil > 0
 
 
 def check(sc: SelfCostConfig, need_states: bool = True) -> None:
     """need_states=False: the caller supplies them (DAgger: each round's rollouts)."""
-    if sc.weight < 0:
-        raise ValueError(f"selfcost.weight={sc.weight}: must be >= 0 (0 = off)")
-    if sc.weight > 0 and need_states and not sc.states.strip():
-        raise ValueError("selfcost.weight > 0 needs selfcost.states: evaluation folders of closed-loop rollouts on "
-                         "train maps (pipelines/evaluate.py --maps train --out DIR, or a DAgger round's rollouts/)")
+    for k in ("weight", "distil", "pace"):
+        if getattr(sc, k) < 0:
+            raise ValueError(f"selfcost.{k}={getattr(sc, k)}: must be >= 0 (0 = off)")
+    if active(sc) and need_states and not sc.states.strip():
+        raise ValueError("selfcost.weight > 0 (or selfcost.distil > 0) needs selfcost.states: evaluation folders of "
+                         "closed-loop rollouts on train maps (pipelines/evaluate.py --maps train --out DIR, or a "
+                         "DAgger round's rollouts/)")
     for k in ("prompts", "candidates", "steps", "grad_steps", "state_every"):
         if getattr(sc, k) < 1:
             raise ValueError(f"selfcost.{k}={getattr(sc, k)}: must be >= 1")
@@ -89,6 +116,7 @@ class SelfCost:
         check(sc)
         self.rank = rank  # Ray Train workers draw different states (their gradients are averaged)
         self.sc, self.samples, self.pc, self.tc = sc, samples, replace(pc, guide_goal=sc.goal, guide_follow=0.0), tc
+        self.plan_pc = replace(pc, guide_follow=0.0)  # the guided target: the planner's guidance as it samples
         folders = [f.strip() for f in sc.states.split(",") if f.strip()]
         self.maps, self.episodes, self.states = visited_states(folders, tc, sc.state_every)
         if not self.states:
@@ -124,13 +152,13 @@ class SelfCost:
         batch = {k: torch.from_numpy(np.stack([c[k] for c in conds])).to(dev) for k in COND_KEYS + ("map", "chunk")}
         prompt = make_prompt(model, {k: batch[k] for k in COND_KEYS + ("map",)}, batch["chunk"], G)
         gen = torch.Generator().manual_seed(int(rng.integers(2 ** 62)))
+        x_T = torch.randn(prompt.given.shape, generator=gen).to(dev)  # shared by the sample and its guided target
         seq = ddim_steps(sched.K, sc.steps)
         # the graded step: one of the grad_steps before the last (the last, k = 0, scales the noise prediction by
         # sqrt(1 - abar_0) ~ 0.01: its clean chunk hardly depends on the weights, so its gradient is nil)
         graded = max(len(seq) - 2 - int(rng.integers(min(sc.grad_steps, len(seq) - 1))), 0)
         # DDIM (eta = 0) to the graded step without gradients, as the planner samples; then one model call with them
-        x = ddim_sample(model, sched, prompt, sc.steps, noise=lambda shape: torch.randn(shape, generator=gen),
-                        stop=graded).chunk  # (B G, R, H, 2)
+        x = ddim_sample(model, sched, prompt, sc.steps, noise=lambda shape: x_T, stop=graded).chunk  # (B G, R, H, 2)
         ks = torch.full((x.shape[0],), seq[graded], device=dev, dtype=torch.long)
         x0 = sched.predict_x0(x, ks, model(x, ks, prompt.cond, ctx=prompt.ctx)["eps"])
         start = prompt.cond["start"]
@@ -138,14 +166,58 @@ class SelfCost:
         real = np.stack([c["robot_mask"] for c in conds])
         leader = np.array([int(np.argmax(c["goal_mask"])) for c in conds])
         sdf, geo = map(np.stack, zip(*(self.fields(e) for e in eps)))
-        guide = Guide(self.pc, self.tc, self.samples, np.stack([c["start"] for c in conds]), real, real, leader,
-                      sdf, geo, G, dev)
-        cost = guide.cost(p)  # (B G,)
+        starts = np.stack([c["start"] for c in conds])
+        sdf_t, real_t = torch.as_tensor(np.repeat(sdf, G, 0), device=dev), torch.as_tensor(np.repeat(real, G, 0), device=dev)
+        h = self.pc.replan_every
         with torch.no_grad():  # how many of the sampled executed moves break a hard constraint
-            viol = self.violating(p[:, :, :self.pc.replan_every], torch.as_tensor(guide.sdf, device=dev),
-                                  torch.as_tensor(guide.real, device=dev))
-        loss = sc.weight * cost.mean()
-        return loss, {"losses/selfcost": cost.mean().detach(), "selfcost/violating": viol.float().mean()}
+            viol = self.violating(p[:, :, :h].detach(), sdf_t, real_t)
+        fields = (starts, real, leader, sdf, geo)
+        loss, logs = x0.new_zeros(()), {"selfcost/violating": viol.float().mean()}
+        if sc.distil > 0:
+            err, bad = self.distilled(model, sched, prompt, x_T, x0, fields, sdf_t, real_t)
+            loss = loss + sc.distil * err
+            logs |= {"losses/distil": err.detach(), "selfcost/target_violating": bad}
+        if sc.weight > 0:
+            cost = self.costed(p, start, fields)
+            loss = loss + sc.weight * cost.mean()
+            logs["losses/selfcost"] = cost.mean().detach()
+        return loss, logs
+
+    def distilled(self, model, sched, prompt, x_T, x0, fields, sdf_t, real_t) -> tuple[torch.Tensor, torch.Tensor]:
+        """The mean square distance (chunk units, real robots) of the predicted clean chunks x0 to the guided
+        sampler's chunks from the same noise x_T, and the share of those targets dropped (their executed moves
+        still break a constraint)."""
+        starts, real, leader, sdf, geo = fields
+        guide = Guide(self.plan_pc, self.tc, self.samples, starts, real, real, leader, sdf, geo, self.sc.candidates,
+                      x0.device)
+        target = ddim_sample(model, sched, prompt, self.sc.steps, noise=lambda shape: x_T, guide=guide,
+                             guide_steps=self.plan_pc.guide_steps).chunk  # (B G, R, H, 2), no gradient
+        with torch.no_grad():
+            pts = decode_chunk(target, prompt.cond["start"], self.samples)[:, :, :self.pc.replan_every]
+            keep = ~self.violating(pts, sdf_t, real_t)
+            w = (real_t.float() * keep[:, None].float())[:, :, None, None]  # (B G, R, 1, 1)
+        err = ((x0 - target) ** 2 * w).sum() / (w.sum() * x0.shape[2] * x0.shape[3]).clamp(min=1)
+        return err, 1 - keep.float().mean()
+
+    def costed(self, p: torch.Tensor, start: torch.Tensor, fields) -> torch.Tensor:
+        """(B G,) the guidance's cost of the chunks p (metres), its goal term a pace hinge with selfcost.pace."""
+        starts, real, leader, sdf, geo = fields
+        pc = replace(self.pc, guide_goal=0.0) if self.sc.pace > 0 else self.pc
+        G = self.sc.candidates
+        cost = Guide(pc, self.tc, self.samples, starts, real, real, leader, sdf, geo, G, p.device).cost(p)
+        if self.sc.pace > 0:
+            cost = cost + self.sc.goal * self.behind(p, start, torch.as_tensor(np.repeat(geo, G, 0), device=p.device),
+                                                     torch.as_tensor(np.repeat(leader, G), device=p.device))
+        return cost
+
+    def behind(self, p: torch.Tensor, start: torch.Tensor, geo: torch.Tensor, leader: torch.Tensor) -> torch.Tensor:
+        """(B,) how far the leader's chunk points p (B, R, H, 2) m lag behind `selfcost.pace` along the free-space
+        distance to the goal `geo` (B, S, S), mean over the chunk; start (B, R, 2) m, leader (B,) token index."""
+        rows, H = torch.arange(len(p), device=p.device), p.shape[2]
+        g = sdf_at(geo, p[rows, leader])  # (B, H) free-space distance of each leader point
+        g0 = sdf_at(geo, start[rows, leader][:, None])  # (B, 1) ... of where it stands
+        t = self.samples.interval * torch.arange(1, H + 1, device=p.device, dtype=p.dtype)  # simulator steps
+        return torch.relu(g - (g0 - self.sc.pace * t).clamp(min=0)).mean(1)
 
     def violating(self, p: torch.Tensor, sdf: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
         """(B,) whether the points p (B, R, h, 2) come within d_obs_min of an obstacle or d_coll_min of each

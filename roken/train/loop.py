@@ -28,7 +28,7 @@ from ..model.diffusion import DiffusionConfig, NoiseSchedule
 from ..model.dit import ModelConfig, RokenDiT, check as check_model
 from ..model.losses import LossConfig, check as check_loss, pretraining_loss
 from ..plan.rollout import PlanConfig
-from ..rl.selfcost import SelfCost, SelfCostConfig
+from ..rl.selfcost import SelfCost, SelfCostConfig, active
 from ..world.maps import MapConfig
 from ..world.tasks import TaskConfig
 from . import checkpoint as ckpt
@@ -164,7 +164,7 @@ class Pretraining:
         self.log_stream = log_stream
         self.amp = (t.precision == "bf16") or (t.precision == "auto" and self.device.type == "cuda")
         self.selfcost = None  # the constraint cost of the model's own samples, beside the denoising loss
-        if spec.selfcost.weight > 0:
+        if active(spec.selfcost):
             self.selfcost = SelfCost(spec.selfcost, spec.samples, spec.plan, spec.task, self.rank)
 
     # -- model, optimizer, state -------------------------------------------------------------------------
@@ -348,7 +348,7 @@ class Pretraining:
                           f"loss {metrics['losses/total']:.4f} traj {metrics['losses/traj']:.4f}"
                           + "".join(f" {k.split('/')[-1]} {metrics[k]:.4f}"
                                     for k in ("losses/wp", "losses/occ", "losses/sdf", "losses/sep", "losses/selfcost",
-                                              "selfcost/violating")
+                                              "losses/distil", "selfcost/violating", "selfcost/target_violating")
                                     if k in metrics)
                           + f" | {rate:.0f} samples/s, data wait {100 * metrics['charts/data_wait_frac']:.0f}%, "
                           f"lr {metrics['charts/lr']:.2e}, ETA {duration(eta)}")
