@@ -23,6 +23,17 @@ TINY = ["model.width=64", "model.depth=2", "model.heads=4", "model.mlp_hidden=12
         "selfcost.steps=3", "selfcost.grad_steps=1", "selfcost.state_every=16"]
 
 
+def descend(term, model, sched, step: int, lr: float, iters: int = 5) -> torch.Tensor:
+    """`iters` Adam steps on the term at one step's draws; the term there afterwards."""
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    for _ in range(iters):
+        loss, _ = term(model, sched, step=step)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return term(model, sched, step=step)[0]
+
+
 def test_the_states_are_the_feasible_ones_of_the_rollouts(expert_dataset):
     cfg = load_config(None, TINY)
     maps, episodes, states = visited_states([expert_dataset], cfg.task, 16)
@@ -49,13 +60,7 @@ def test_descending_the_term_lowers_the_cost_of_the_models_own_samples(expert_da
     assert {"losses/selfcost", "selfcost/violating"} <= set(logs) and first.item() > 0
     first.backward()
     assert sum(float(p.grad.norm()) for p in model.parameters() if p.grad is not None) > 0
-    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
-    for _ in range(5):  # the same draws every time: the cost of these samples must fall
-        loss, _ = term(model, sched, step=7)
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    after, _ = term(model, sched, step=7)
+    after = descend(term, model, sched, step=7, lr=3e-3)  # the same draws every time: their cost must fall
     # (an untrained model's clean chunks sit on the sampler's clip, where they have no gradient: a part of the cost
     # cannot move; measured 674 -> 606)
     assert after.item() < 0.95 * first.item()
@@ -96,13 +101,7 @@ def test_the_guided_target_pulls_the_models_samples_onto_their_guided_version(ex
     assert first.item() == pytest.approx(again.item(), rel=1e-5)  # the target is as repeatable as the sample
     assert {"losses/distil", "selfcost/violating", "selfcost/target_violating"} <= set(logs) and "losses/selfcost" not in logs
     assert 0 <= logs["selfcost/target_violating"].item() < 1 and first.item() > 0
-    opt = torch.optim.Adam(model.parameters(), lr=1e-4)
-    for _ in range(5):  # the target moves with the model; the distance to it must fall all the same
-        loss, _ = term(model, sched, step=3)
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    after, _ = term(model, sched, step=3)
+    after = descend(term, model, sched, step=3, lr=1e-4)  # the target moves with the model; the distance must fall
     assert after.item() < 0.7 * first.item()
     with pytest.raises(ValueError, match="selfcost.distil"):
         check(SelfCostConfig(distil=-1.0, states=expert_dataset))
