@@ -146,3 +146,18 @@ def test_the_pace_hinge_pulls_only_a_leader_behind_schedule(expert_dataset):
     assert lag[2].item() == pytest.approx(float((0.25 * t).mean()), rel=0.02)
     with pytest.raises(ValueError, match="selfcost.pace"):
         check(SelfCostConfig(weight=1.0, states=expert_dataset, pace=-1))
+
+
+def test_spacing_moves_the_inter_robot_hinge_out(expert_dataset):
+    cfg = load_config(None, TINY + [f"selfcost.states={expert_dataset}", "selfcost.weight=1", "selfcost.goal=0",
+                                    "selfcost.candidates=1"])
+    H = cfg.samples.horizon
+    start = np.array([[[50.0, 50.0], [53.0, 50.0]]], np.float32)  # two robots 3 m apart, in the open
+    p = torch.from_numpy(start)[:, :, None].repeat(1, 1, H, 1)  # standing still
+    fields = (start, np.ones((1, 2), bool), np.zeros(1, np.int64), np.full((1, 140, 140), 50.0, np.float32),
+              np.zeros((1, 140, 140), np.float32))
+    costs = []
+    for spacing in (0.0, 0.8):
+        cfg.selfcost.spacing = spacing
+        costs.append(SelfCost(cfg.selfcost, cfg.samples, cfg.plan, cfg.task).costed(p, p[:, :, 0], fields).item())
+    assert costs[0] == 0 < costs[1]  # 3 m clears 2 m + the 0.6 m margin, not 2.8 m + 0.6 m

@@ -65,6 +65,10 @@ class SelfCostConfig:
     # mean over the chunk, times `goal`. A constant pull keeps rewarding speed past the expert's, which buys the
     # violations back; a pace hinge leaves a leader on schedule to the constraint terms. 0 = the constant pull
     pace: float = 0.0
+    # metres added to d_coll_min in the term's inter-robot hinge (the guidance's margin already adds plan.guide_margin):
+    # plain rollouts' first violation is mostly a slow drift of one robot into a team-mate that the term left at the
+    # hinge's edge, while the expert keeps pairs 3.1 m or more apart (10th percentile); 0 = the guidance's hinge
+    spacing: float = 0.0
     # weight of the guided target: the sample regressed onto the guided sampler's chunk from the same noise (the
     # plan section's guidance, goal pull included, as `roken+guided` samples); 0 = off
     distil: float = 0.0
@@ -78,7 +82,7 @@ def active(sc: SelfCostConfig) -> bool:
 
 def check(sc: SelfCostConfig, need_states: bool = True) -> None:
     """need_states=False: the caller supplies them (DAgger: each round's rollouts)."""
-    for k in ("weight", "distil", "pace"):
+    for k in ("weight", "distil", "pace", "spacing"):
         if getattr(sc, k) < 0:
             raise ValueError(f"selfcost.{k}={getattr(sc, k)}: must be >= 0 (0 = off)")
     if active(sc) and need_states and not sc.states.strip():
@@ -200,11 +204,13 @@ class SelfCost:
         return err, 1 - keep.float().mean()
 
     def costed(self, p: torch.Tensor, start: torch.Tensor, fields) -> torch.Tensor:
-        """(B G,) the guidance's cost of the chunks p (metres), its goal term a pace hinge with selfcost.pace."""
+        """(B G,) the guidance's cost of the chunks p (metres), its goal term a pace hinge with selfcost.pace, its
+        inter-robot hinge selfcost.spacing further out."""
         starts, real, leader, sdf, geo = fields
         pc = replace(self.pc, guide_goal=0.0) if self.sc.pace > 0 else self.pc
+        tc = replace(self.tc, d_coll_min=self.tc.d_coll_min + self.sc.spacing)
         G = self.sc.candidates
-        cost = Guide(pc, self.tc, self.samples, starts, real, real, leader, sdf, geo, G, p.device).cost(p)
+        cost = Guide(pc, tc, self.samples, starts, real, real, leader, sdf, geo, G, p.device).cost(p)
         if self.sc.pace > 0:
             cost = cost + self.sc.goal * self.behind(p, start, torch.as_tensor(np.repeat(geo, G, 0), device=p.device),
                                                      torch.as_tensor(np.repeat(leader, G), device=p.device))
