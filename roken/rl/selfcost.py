@@ -18,13 +18,13 @@ States come from evaluation folders of rollouts on `train` maps (`pipelines/eval
 `rollouts/` of DAgger rounds): every `state_every` simulator steps up to the first violation (the feasible states
 the model must leave feasibly), each with its last chunk move (`model.prev_move`).
 
-`distil` (a weight beside `weight`, or instead of it) distils the guided sampler rather than descending its cost (guidance distillation, as Meng et al.
-2023 distil classifier-free guidance): from the same noise, the planner's constraint-guided DDIM (the `plan`
-section's guidance, as `roken+guided` samples) gives the target, and the graded step's predicted clean chunk is
-regressed onto it (mean square over the real robots' points, in chunk units). The target is a small, feasible
-correction of the model's own sample, so the pull has no speed to trade for safety (the guided planner keeps the
-leader at its pace) and does not drift far from what the model already does; targets whose executed moves still
-break a constraint are dropped.
+`distil` (a weight beside `weight`, or instead of it) distils the guided sampler rather than descending its cost
+(guidance distillation, as Meng et al. 2023 distil classifier-free guidance): from the same noise, the planner's
+constraint-guided DDIM (the `plan` section's guidance, as `roken+guided` samples) gives the target, and the graded
+step's predicted clean chunk is regressed onto it (mean square over the real robots' points, in chunk units). The
+target is a small, feasible correction of the model's own sample, so the pull has no speed to trade for safety
+(the guided planner keeps the leader at its pace) and does not drift far from what the model already does; targets
+whose executed moves still break a constraint are dropped.
 
 `pace` turns the goal term into a hinge: only a leader that falls behind `pace` metres per simulator step along
 the free-space distance is pulled, so a leader on schedule is left to the constraint terms (a constant pull keeps
@@ -171,7 +171,8 @@ class SelfCost:
         leader = np.array([int(np.argmax(c["goal_mask"])) for c in conds])
         sdf, geo = map(np.stack, zip(*(self.fields(e) for e in eps)))
         starts = np.stack([c["start"] for c in conds])
-        sdf_t, real_t = torch.as_tensor(np.repeat(sdf, G, 0), device=dev), torch.as_tensor(np.repeat(real, G, 0), device=dev)
+        sdf_t = torch.as_tensor(np.repeat(sdf, G, 0), device=dev)  # (B G, S, S)
+        real_t = torch.as_tensor(np.repeat(real, G, 0), device=dev)  # (B G, R)
         h = self.pc.replan_every
         with torch.no_grad():  # how many of the sampled executed moves break a hard constraint
             viol = self.violating(p[:, :, :h].detach(), sdf_t, real_t)
@@ -209,11 +210,11 @@ class SelfCost:
         starts, real, leader, sdf, geo = fields
         pc = replace(self.pc, guide_goal=0.0) if self.sc.pace > 0 else self.pc
         tc = replace(self.tc, d_coll_min=self.tc.d_coll_min + self.sc.spacing)
-        G = self.sc.candidates
-        cost = Guide(pc, tc, self.samples, starts, real, real, leader, sdf, geo, G, p.device).cost(p)
-        if self.sc.pace > 0:
-            cost = cost + self.sc.goal * self.behind(p, start, torch.as_tensor(np.repeat(geo, G, 0), device=p.device),
-                                                     torch.as_tensor(np.repeat(leader, G), device=p.device))
+        guide = Guide(pc, tc, self.samples, starts, real, real, leader, sdf, geo, self.sc.candidates, p.device)
+        cost = guide.cost(p)
+        if self.sc.pace > 0:  # the guide holds the fields and leaders repeated per candidate
+            cost = cost + self.sc.goal * self.behind(p, start, torch.as_tensor(guide.geo, device=p.device),
+                                                     torch.as_tensor(guide.leader, device=p.device))
         return cost
 
     def behind(self, p: torch.Tensor, start: torch.Tensor, geo: torch.Tensor, leader: torch.Tensor) -> torch.Tensor:
