@@ -2,7 +2,7 @@
 
     python benchmarks/plain_tolerance.py                                   # 100 eval tasks, N = 4, one thread
     python benchmarks/plain_tolerance.py --episodes 200 --sigmas 0,0.1,0.2,0.4,0.8 --errors independent,offset
-    python benchmarks/plain_tolerance.py --sigmas 0,0.4 --set expert.margin_obs=0.4   # a more cautious expert
+    python benchmarks/plain_tolerance.py --sigmas 0,0.45 --errors offset --config configs/expert/cautious.yaml
 
 Plain Roken executes the first plan.replan_every = 2 moves of each sampled chunk, then re-plans; any robot that
 comes within d_obs_min of an obstacle or d_coll_min of another robot at any simulator step fails the episode.
@@ -102,11 +102,12 @@ def main() -> None:
     ap.add_argument("--sigmas", default="0,0.1,0.2,0.4,0.8")
     ap.add_argument("--errors", default="independent,offset")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--config", help="YAML config whose sections override the defaults (e.g. configs/expert/cautious.yaml)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override, e.g. expert.margin_obs=0.4 (a more cautious expert's tolerance)")
     args = ap.parse_args()
     torch.set_num_threads(1)
-    cfg = load_config(None, [f"eval.maps={args.maps}", f"eval.episodes={args.episodes}", *args.set])
+    cfg = load_config(args.config, [f"eval.maps={args.maps}", f"eval.episodes={args.episodes}", *args.set])
     maps, _ = load_maps(cfg)
     tasks, skipped = make_tasks(cfg, maps, args.robots)
     by_id = {m.map_id: m for m in maps}

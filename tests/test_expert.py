@@ -70,3 +70,23 @@ def test_moving_average_keeps_endpoints_and_step_bound():
     np.testing.assert_allclose(s[0], p[0])
     np.testing.assert_allclose(s[-1], p[-1])
     assert np.linalg.norm(np.diff(s, axis=0), axis=-1).max() <= 0.5 + 1e-9
+
+
+def test_cautious_config_keeps_more_clearance_and_still_solves(mc, tc):
+    # configs/expert/cautious.yaml (README "A cautious expert"): the obstacle factor full at 2.4 m pushes the team
+    # off block faces; the lowered slow-down thresholds keep the leader moving. Same tasks as the default.
+    from pathlib import Path
+    from roken.config import load_config
+    from roken.world.geometry import clearance
+    cfg = load_config(Path(__file__).parents[1] / "configs" / "expert" / "cautious.yaml", ["expert.batch_size=8"])
+    assert (cfg.expert.obs_full, cfg.expert.leader_slow, cfg.expert.leader_stop) == (2.4, 0.2, 0.04)
+    p10 = {}
+    for name, ec in (("default", ExpertConfig(batch_size=8)), ("cautious", cfg.expert)):
+        tasks, maps, eps = _run(mc, tc, 4, range(10), ec)
+        rows = [episode_metrics(e.positions, maps[t.map_id], t.goal, t.leader, tc) for t, e in zip(tasks, eps)]
+        s = summarize(rows)
+        assert s["full_success"] >= 0.7 and s["obstacle_collision"] == 0 and s["inter_collision"] == 0, (name, s)
+        c = np.concatenate([clearance(maps[t.map_id].padded, e.positions.reshape(-1, 2).astype(np.float64))
+                            for t, e in zip(tasks, eps)])
+        p10[name] = np.percentile(c, 10)
+    assert p10["cautious"] > p10["default"] + 0.2, p10
