@@ -51,6 +51,11 @@ class ModelConfig:
     # Beyond the paper: each robot token also sees its last chunk move (cond["prev_move"]), the inertia the
     # expert's next moves follow; zero-initialised, so a model trained without it starts unchanged.
     prev_move: bool = False
+    # Beyond the paper: each robot token also sees its `neighbours` nearest team-mates as offsets from it (m / 5,
+    # the distance, a presence flag; README "Team-mates as offsets"): the pairwise geometry the robot-robot
+    # constraints depend on, which absolute sinusoidal positions leave to attention to compute. Zero-initialised
+    # like prev_move; 0 = off.
+    neighbours: int = 0
 
 
 PRESETS = {
@@ -80,6 +85,8 @@ def check(cfg: ModelConfig) -> None:
         raise ValueError(f"model.map_encoder must be one of {', '.join(MAP_ENCODERS)}, got {cfg.map_encoder!r}")
     if cfg.local_crop < 0:
         raise ValueError(f"model.local_crop must be >= 0 (0 = off), got {cfg.local_crop}")
+    if cfg.neighbours < 0:
+        raise ValueError(f"model.neighbours must be >= 0 (0 = off), got {cfg.neighbours}")
     problems = []
     if min(cfg.width, cfg.depth, cfg.heads, cfg.mlp_hidden, cfg.map_patch, cfg.horizon, cfg.freq_dim) < 1:
         problems.append("model.width, depth, heads, mlp_hidden, map_patch, horizon and freq_dim must be >= 1")
@@ -117,6 +124,26 @@ class TimestepEmbedder(nn.Module):
         freqs = torch.exp(-math.log(10000) * torch.arange(half, device=k.device, dtype=torch.float32) / half)
         args = k.float()[:, None] * freqs[None]
         return self.mlp(torch.cat([args.cos(), args.sin()], dim=-1))
+
+
+def neighbour_offsets(start: torch.Tensor, robot_mask: torch.Tensor, k: int) -> torch.Tensor:
+    """(B, R, 2) positions (m), (B, R) real robots -> (B, R, 4k): each robot's k nearest real team-mates, nearest
+    first, as (dx / 5, dy / 5, distance / 5, 1); zeros where fewer than k exist. Sorted by distance, so the
+    features do not depend on the robots' order."""
+    B, R, _ = start.shape
+    off = start[:, None, :, :] - start[:, :, None, :]  # (B, R, R, 2): j relative to i
+    d = off.norm(dim=-1)  # (B, R, R)
+    valid = robot_mask.bool()[:, None, :] & ~torch.eye(R, dtype=torch.bool, device=start.device)
+    key = torch.where(valid, d, torch.full_like(d, float("inf")))
+    kk = min(k, R)
+    dist, idx = key.topk(kk, dim=-1, largest=False)  # (B, R, kk)
+    pres = torch.isfinite(dist)
+    o = off.gather(2, idx[..., None].expand(B, R, kk, 2))  # (B, R, kk, 2)
+    feat = torch.cat([o / 5.0, torch.where(pres, dist, 0.0)[..., None] / 5.0, pres[..., None].to(o.dtype)], -1)
+    feat = torch.where(pres[..., None], feat, 0.0)
+    if kk < k:
+        feat = torch.cat([feat, feat.new_zeros(B, R, k - kk, 4)], dim=2)
+    return feat.reshape(B, R, 4 * k)
 
 
 def patch_positions(cfg: ModelConfig) -> torch.Tensor:
@@ -308,6 +335,8 @@ class RokenDiT(nn.Module):
             self.phi_crop = nn.Sequential(nn.Linear(2 * cfg.local_crop ** 2, w), nn.SiLU(), nn.Linear(w, w))
         if cfg.prev_move:
             self.phi_prev = nn.Linear(2, w)
+        if cfg.neighbours:
+            self.phi_nbr = nn.Sequential(nn.Linear(4 * cfg.neighbours, w), nn.SiLU(), nn.Linear(w, w))
         self.blocks = nn.ModuleList([DecoderBlock(cfg) for _ in range(cfg.depth)])
         self.occ_layer = cfg.occ_layer if cfg.occ_layer >= 0 else cfg.depth // 2 - 1
         self.final = FinalLayer(w, 2 * H)
@@ -341,6 +370,9 @@ class RokenDiT(nn.Module):
         if self.cfg.prev_move:  # the last move enters at 0: a fine-tune from a model without it starts unchanged
             nn.init.zeros_(self.phi_prev.weight)
             nn.init.zeros_(self.phi_prev.bias)
+        if self.cfg.neighbours:  # the same for the team-mates' offsets
+            nn.init.zeros_(self.phi_nbr[-1].weight)
+            nn.init.zeros_(self.phi_nbr[-1].bias)
 
     def num_params(self) -> int:
         return sum(p.numel() for p in self.parameters())
@@ -370,6 +402,9 @@ class RokenDiT(nn.Module):
         if self.cfg.prev_move:  # absent from the condition: at rest (build_condition's previous=None)
             prev = cond.get("prev_move")
             z = z + self.phi_prev(torch.zeros_like(cond["start"]) if prev is None else prev.to(z.dtype))  # (B, R, W)
+        if self.cfg.neighbours:
+            nbr = neighbour_offsets(cond["start"].float(), cond["robot_mask"], self.cfg.neighbours)  # (B, R, 4K)
+            z = z + self.phi_nbr(nbr.to(z.dtype))  # (B, R, W)
         c = self.t_embed(k)  # (B, W)
         pad_mask = cond["robot_mask"].bool()[:, None, None, :]  # (B, 1, 1, R): True = attend
         out = {}

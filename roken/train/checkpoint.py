@@ -251,7 +251,7 @@ def load_train_state(ckpt: str | Path) -> dict:
         raise CheckpointError(f"{p}: cannot be read ({type(e).__name__}: {e}); the file is corrupt") from None
 
 
-def moments_without(saved: dict, model: torch.nn.Module, opt: torch.optim.Optimizer, prefix: str) -> dict:
+def moments_without(saved: dict, model: torch.nn.Module, opt: torch.optim.Optimizer, prefix: str | tuple) -> dict:
     """An optimizer state saved for `model` without its parameters named `prefix*` (a checkpoint from before
     they existed), re-indexed for `opt` over the whole model; the new parameters get fresh moments. torch keys an
     optimizer's state by position over its groups, so the positions are matched through parameter names."""

@@ -206,12 +206,17 @@ class Pretraining:
     def _load_init(self, path: str) -> None:
         """Start from another run's checkpoint (DAgger's rounds): its weights and EMA, and its optimizer moments
         when it has a train_state.pt (a fresh Adam at full lr would shake a trained model). A checkpoint without
-        the last-move input may start a run with `model.prev_move` (the new input starts at 0, its moments fresh)."""
+        the last-move input may start a run with `model.prev_move`, one without the team-mates' offsets with
+        `model.neighbours` (a new input starts at 0, its moments fresh)."""
         loaded = ckpt.load(path, "cpu")
         self.ema_offset = int(loaded.config.get("step", 0)) + int(loaded.config.get("ema_offset", 0))
         old, own = asdict(loaded.model_cfg), asdict(self.spec.model)
-        adds_prev = own["prev_move"] and not old["prev_move"] and {**old, "prev_move": True} == own
-        if old != own and not adds_prev:
+        # zero-initialised inputs a run may add to a checkpoint without them: (config key, its value when off,
+        # the parameters it brings)
+        inputs = (("prev_move", False, "phi_prev."), ("neighbours", 0, "phi_nbr."))
+        added = [(key, off, prefix) for key, off, prefix in inputs if old.get(key, off) == off and own[key] != off]
+        adds_inputs = bool(added) and {**old, **{key: own[key] for key, _, _ in added}} == own
+        if old != own and not adds_inputs:
             raise ckpt.CheckpointError(f"{loaded.path}: its model section differs from this run's "
                                        f"({', '.join(changed_keys(old, own, 'model.')[:4])}); "
                                        f"start from a checkpoint of the same model config")
@@ -221,12 +226,13 @@ class Pretraining:
         else:  # inference weights only (an exported model): the EMA weights start both copies
             model = ema = loaded.model.state_dict()
             optimizer = None
-        if adds_prev:
+        if adds_inputs:
             missing = self.model.load_state_dict(model, strict=False).missing_keys
             self.ema.load_state_dict(ema, strict=False)
-            if any(not k.startswith("phi_prev.") for k in missing):
+            prefixes = tuple(prefix for _, _, prefix in added)
+            if any(not k.startswith(prefixes) for k in missing):
                 raise ckpt.CheckpointError(f"{loaded.path}: weights missing {missing[:4]}")
-            optimizer = optimizer and ckpt.moments_without(optimizer, self.model, self.opt, "phi_prev.")
+            optimizer = optimizer and ckpt.moments_without(optimizer, self.model, self.opt, prefixes)
         else:
             self.model.load_state_dict(model)
             self.ema.load_state_dict(ema)
