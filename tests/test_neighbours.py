@@ -1,12 +1,9 @@
-"""model.neighbours: each robot token sees its nearest team-mates as offsets (README "Team-mates as offsets")."""
+"""model.neighbours: each robot token sees its nearest team-mates as offsets (README "Team-mates as offsets").
+Starting a run with it from a checkpoint without it: tests/test_prev_move.py."""
 import pytest
 import torch
 
-from roken.config import load_config
 from roken.model.dit import RokenDiT, neighbour_offsets, preset
-from roken.train.loop import Pretraining, PretrainSpec
-
-from test_prev_move import TINY  # the same tiny recipe (pytest puts tests/ on the path)
 
 
 def test_offsets_are_nearest_first_real_robots_only_and_independent_of_order():
@@ -40,20 +37,6 @@ def test_the_input_enters_at_zero_and_then_reads_the_team_geometry():
         assert not torch.allclose(a, on(x, k, moved)["eps"])
         torch.testing.assert_close(on.phi_nbr(neighbour_offsets(shifted["start"], cond["robot_mask"], 2)),
                                    on.phi_nbr(neighbour_offsets(cond["start"], cond["robot_mask"], 2)))
-
-
-def test_a_run_adding_the_input_starts_from_a_checkpoint_without_it(expert_dataset, tmp_path):
-    base = Pretraining(PretrainSpec.of(load_config(None, TINY + ["train.steps=3"])), expert_dataset, tmp_path / "a")
-    base.fit()
-    run = Pretraining(PretrainSpec.of(load_config(None, TINY + ["train.steps=6", "model.neighbours=2"])),
-                      expert_dataset, tmp_path / "b", init=str(tmp_path / "a"))
-    run._build()
-    run._load_init(str(tmp_path / "a"))
-    for name, v in base.model.state_dict().items():
-        assert torch.equal(run.model.state_dict()[name], v), name
-    assert not run.model.phi_nbr[-1].weight.any()
-    assert run.model.phi_nbr[0].weight not in run.opt.state  # fresh moments for the new input
-    assert run.fit()["steps"] == 6 and run.model.phi_nbr[-1].weight.abs().sum() > 0
 
 
 def test_a_negative_count_is_named():

@@ -3,6 +3,7 @@ without it ignores it, and that a run adding it starts from a checkpoint without
 from dataclasses import replace
 
 import numpy as np
+import pytest
 import torch
 
 from roken.config import load_config
@@ -106,23 +107,28 @@ def test_closed_loop_feeds_the_executed_move_one_interval_back():
     assert np.abs(seen[-1]).max() > 0.05, "the random model moves, so the input is not all zero"
 
 
-def test_a_run_adding_the_input_starts_from_a_checkpoint_without_it(expert_dataset, tmp_path):
+@pytest.mark.parametrize("option,prefix", [("model.prev_move=true", "phi_prev."), ("model.neighbours=2", "phi_nbr.")])
+def test_a_run_adding_the_input_starts_from_a_checkpoint_without_it(expert_dataset, tmp_path, option, prefix):
+    # the zero-initialised inputs (the last move; the team-mates' offsets, tests/test_neighbours.py)
     base = Pretraining(PretrainSpec.of(load_config(None, TINY + ["train.steps=3"])), expert_dataset, tmp_path / "a")
     base.fit()
-    run = Pretraining(PretrainSpec.of(load_config(None, TINY + ["train.steps=6", "model.prev_move=true"])),
+    run = Pretraining(PretrainSpec.of(load_config(None, TINY + ["train.steps=6", option])),
                       expert_dataset, tmp_path / "b", init=str(tmp_path / "a"))
     run._build()
     run._load_init(str(tmp_path / "a"))
     for name, v in base.model.state_dict().items():
         assert torch.equal(run.model.state_dict()[name], v), name
-    assert not run.model.phi_prev.weight.any()
-    # AdamW's moments follow each parameter by name (the new input's are fresh)
     own = dict(run.model.named_parameters())
+    added = [p for n, p in own.items() if n.startswith(prefix)]
+    assert added and not added[-1].any(), "the new input's output layer starts at 0"
+    # AdamW's moments follow each parameter by name (the new input's are fresh)
     old = dict(base.model.named_parameters())
     for name in ("phi_tau.weight", "blocks.0.mlp.0.bias", "final.linear.weight"):
         torch.testing.assert_close(run.opt.state[own[name]]["exp_avg"], base.opt.state[old[name]]["exp_avg"])
-    assert own["phi_prev.weight"] not in run.opt.state
-    assert run.fit()["steps"] == 6 and run.model.phi_prev.weight.abs().sum() > 0
+    assert all(p not in run.opt.state for p in added)
+    assert run.fit()["steps"] == 6
+    trained = [p for n, p in run.model.named_parameters() if n.startswith(prefix)]  # fit() builds the model anew
+    assert trained[-2].abs().sum() > 0, "the new input learns"
 
 
 def test_a_prefix_hands_the_episode_over_at_its_last_row():
