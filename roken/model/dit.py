@@ -134,13 +134,12 @@ def neighbour_offsets(start: torch.Tensor, robot_mask: torch.Tensor, k: int) -> 
     off = start[:, None, :, :] - start[:, :, None, :]  # (B, R, R, 2): j relative to i
     d = off.norm(dim=-1)  # (B, R, R)
     valid = robot_mask.bool()[:, None, :] & ~torch.eye(R, dtype=torch.bool, device=start.device)
-    key = torch.where(valid, d, torch.full_like(d, float("inf")))
     kk = min(k, R)
-    dist, idx = key.topk(kk, dim=-1, largest=False)  # (B, R, kk)
+    dist, idx = d.masked_fill(~valid, float("inf")).topk(kk, dim=-1, largest=False)  # (B, R, kk)
     pres = torch.isfinite(dist)
     o = off.gather(2, idx[..., None].expand(B, R, kk, 2))  # (B, R, kk, 2)
-    feat = torch.cat([o / 5.0, torch.where(pres, dist, 0.0)[..., None] / 5.0, pres[..., None].to(o.dtype)], -1)
-    feat = torch.where(pres[..., None], feat, 0.0)
+    feat = torch.cat([o, dist[..., None], torch.full_like(dist[..., None], 5.0)], -1) / 5.0
+    feat = torch.where(pres[..., None], feat, 0.0)  # slots without a team-mate (inf distance) stay 0
     if kk < k:
         feat = torch.cat([feat, feat.new_zeros(B, R, k - kk, 4)], dim=2)
     return feat.reshape(B, R, 4 * k)
