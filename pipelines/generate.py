@@ -42,7 +42,7 @@ def main(argv=None) -> int:
     try:
         cfg = load_config(args.config, overrides(args))
         shard = parse_shard(args.shard)
-        check(cfg.dataset)  # before a Ray cluster starts or anything is written
+        check(cfg.dataset, cfg.expert)  # before a Ray cluster starts or anything is written
         explain_relative_out(args.out)
         runner = make_runner(args)
         manifest = build_dataset(cfg, args.out, runner, shard)

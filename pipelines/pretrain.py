@@ -40,7 +40,10 @@ RESUME_TRAIN_KEYS = ("batch_size", "lr", "weight_decay", "warmup_steps", "schedu
 
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", required=True, help="dataset folder or URI from pipelines/generate.py")
+    ap.add_argument("--data", required=True, help="dataset folder or URI from pipelines/generate.py; several, "
+                                                  "comma-separated, are mixed (see --data-shares)")
+    ap.add_argument("--data-shares", help="with several --data: each one's share of the training samples, "
+                                          "comma-separated (e.g. 0.5,0.5); default: in proportion to their episodes")
     ap.add_argument("--out", required=True, help="run folder (checkpoints, metrics); an absolute path for Ray")
     ap.add_argument("--val-data", help="held-out dataset (generated with --maps val; a dataset of eval maps is "
                                        "refused); default: train.val_fraction of --data's maps")
@@ -61,6 +64,21 @@ def overrides(args) -> list[str]:
     pre = [f"model.{k}={v}" for k, v in asdict(preset(args.preset)).items()] if args.preset else []
     renamed = argparse.Namespace(set=args.set, steps=args.steps, batch_size=args.batch_size, device=args.device)
     return pre + named_overrides(renamed, "train", ("steps", "batch_size", "device"))
+
+
+def datasets(data: str, shares: str | None) -> tuple[list[str], list[float] | None]:
+    """--data and --data-shares as (absolute locations, shares or None), checked before anything is written."""
+    locations = [absolute(d.strip()) for d in data.split(",") if d.strip()]
+    if not shares:
+        return locations, None
+    try:
+        values = [float(x) for x in shares.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != len(locations) or any(v < 0 for v in values) or sum(values) <= 0:
+        raise ValueError(f"--data-shares {shares}: give one share >= 0 per --data folder ({len(locations)}), with a "
+                         f"positive total, e.g. --data-shares {','.join(['0.5'] * len(locations))}")
+    return locations, values
 
 
 def check_resume(out: str, cfg) -> int:
@@ -94,7 +112,8 @@ def run_ray(args, cfg, out: str) -> None:
     print(f"[pretrain] Ray Train: {workers} worker(s) x (CPU {args.cpus_per_worker}, GPU {args.gpus_per_worker}); "
           f"global batch {cfg.train.batch_size} = {cfg.train.batch_size // workers} per worker", file=sys.stderr)
     ray_train.fit(ray_train.pretrain_worker, {"config": to_dict(cfg), "data": args.data, "out": out,
-                                          "val_data": args.val_data, "init": args.init, "root": str(ROOT)},
+                                          "val_data": args.val_data, "init": args.init, "root": str(ROOT),
+                                          "shares": args.shares},
                   out, workers, args.cpus_per_worker, args.gpus_per_worker, args.max_failures,
                   cfg.train.keep_checkpoints)
 
@@ -105,14 +124,16 @@ def main(argv=None) -> int:
     try:
         cfg = load_config(args.config, overrides(args))
         out = local_run_folder(args.out, "pretraining", "run folder (a new or an existing run)")
-        args.data, args.val_data = absolute(args.data), absolute(args.val_data)
+        args.data, args.shares = datasets(args.data, args.data_shares)
+        args.val_data = absolute(args.val_data)
         selfcost_states(cfg)
         if args.init:
             # a bad checkpoint fails here, before any write; absolute, since Ray workers run elsewhere
             args.init = str(ckpt.find(args.init).resolve())
-        for d, role in ((args.data, "--data"), (args.val_data, "--val-data")):
+        for d, role in [(d, "--data") for d in args.data] + [(args.val_data, "--val-data")]:
             if d:
                 check_dataset(d, role)
+        args.data = args.data[0] if len(args.data) == 1 else args.data
         step = check_resume(out, cfg)
         done = Path(out) / "summary.json"
         last = json.loads(done.read_text()) if step and done.is_file() else None
@@ -126,7 +147,8 @@ def main(argv=None) -> int:
         if wants_ray(args):
             run_ray(args, cfg, out)
         else:
-            run = Pretraining(PretrainSpec.of(cfg), args.data, out, args.val_data, init=args.init)
+            run = Pretraining(PretrainSpec.of(cfg), args.data, out, args.val_data, data_shares=args.shares,
+                              init=args.init)
             run.fit()
         summary = json.loads((Path(out) / "summary.json").read_text())
     except USER_ERRORS as e:

@@ -199,6 +199,51 @@ def test_bad_team_sizes_are_rejected(tmp_path):
     assert not (tmp_path / "o").exists()  # refused before anything was written
 
 
+def test_disturb_makes_dart_episodes(tmp_path):
+    """expert.disturb (DART): each episode is the expert's own run up to its push, pushed off course for
+    disturb_steps, then the expert's recovery with its hidden state intact; training chunks start right after the
+    push; the episodes stay feasible, and the push is drawn from the task's seed (the same every run)."""
+    import numpy as np
+
+    from roken.data.samples import EpisodeBank
+
+    args = ["--maps", "train", "--num-maps", "2", "--episodes-per-map", "3", "--set", "dataset.team_sizes={4: 1}",
+            "--workers", "0"]
+    assert run(args + ["--out", str(tmp_path / "plain")]).returncode == 0
+    push = args + ["--set", "expert.disturb=0.15", "--set", "dataset.disturb_window=12"]
+    r = run(push + ["--out", str(tmp_path / "dart")])
+    assert r.returncode == 0, r.stderr
+    _, plain = read_run(tmp_path / "plain")
+    _, dart = read_run(tmp_path / "dart")
+    plain = {e["episode_id"]: e for e in plain}
+    assert dart and all(e["source"] == "dart" and e["success"] for e in dart)
+    moved = []
+    for e in dart:
+        at = e["sample_from"] - 8  # expert.disturb_steps
+        assert e["sample_until"] == e["sample_from"] + 12 and 0 <= at
+        P = np.asarray(e["positions"]).reshape(-1, 4, 2)
+        Q = np.asarray(plain[e["episode_id"]]["positions"]).reshape(-1, 4, 2)
+        assert np.allclose(P[:max(at - 2, 0)], Q[:max(at - 2, 0)], atol=1e-5)  # the same run up to the push
+        if at + 8 < min(len(P), len(Q)):
+            moved.append(np.linalg.norm(P[at + 8] - Q[at + 8], axis=-1).mean())
+    assert moved and np.median(moved) > 0.4  # pushed off course (0.88 m at 0.15 m/step on 40 val tasks)
+    r = cli("roken", "validate", str(tmp_path / "dart"))
+    assert r.returncode == 0, r.stdout + r.stderr
+    bank = EpisodeBank.from_arrow(read_table(str(tmp_path / "dart"), "episodes"),
+                                  read_table(str(tmp_path / "dart"), "maps"))
+    by_id = {e["episode_id"]: e for e in dart}  # the window is what training reads (make_sample draws in it)
+    assert [int(bank.sample_from[i]) for i in range(len(bank.episode_ids))] == \
+        [by_id[k]["sample_from"] for k in bank.episode_ids]
+    assert [int(bank.sample_until[i]) for i in range(len(bank.episode_ids))] == \
+        [by_id[k]["sample_until"] for k in bank.episode_ids]
+    assert run(push + ["--out", str(tmp_path / "again")]).returncode == 0
+    assert shard_bytes(tmp_path / "again") == shard_bytes(tmp_path / "dart")  # the push is the task seed's
+    for bad, why in ((["--set", "expert.disturb=-0.1"], "expert.disturb"),
+                     (["--set", "expert.disturb=0.1", "--set", "dataset.restart_every=40"], "restart_every")):
+        r = run(args + bad + ["--out", str(tmp_path / "bad")])
+        assert r.returncode == 2 and why in r.stderr and not (tmp_path / "bad").exists()
+
+
 def test_restart_every_keeps_markov_labels(tmp_path):
     """dataset.restart_every: the expert restarted from every k-th step of each kept episode, each continuation
     the expert's own run from that state, and every training chunk starting at an episode's first step."""

@@ -131,6 +131,17 @@ def test_pipeline_bad_inputs_fail_before_writing(expert_dataset, tmp_path):
                                     pa.array([False] * t.num_rows)), f)
     r = run_pipeline("--data", str(failed), "--out", str(tmp_path / "o2"), "--workers", "0")
     assert r.returncode == 2 and "none of its" in r.stderr and not (tmp_path / "o2").exists()
+    r = run_pipeline("--data", f"{expert_dataset},{expert_dataset}", "--data-shares", "1", "--out",
+                     str(tmp_path / "o4"), "--workers", "0")  # several datasets: one share each
+    assert r.returncode == 2 and "--data-shares 1" in r.stderr and not (tmp_path / "o4").exists()
+    r = run_pipeline("--data", f"{expert_dataset},{expert_dataset}", "--data-shares", "0.7,0.3", "--out",
+                     str(tmp_path / "mix"), "--workers", "0", "--steps", "1", "--preset", "tiny", "--set",
+                     "train.batch_size=4", "--set", "train.loader_workers=0", "--set", "train.eval_every=0")
+    assert r.returncode == 0, r.stderr  # ... and mixed as given
+    meta = ckpt.read_config(ckpt.list_checkpoints(tmp_path / "mix")[-1])
+    assert len(meta["dataset"]["datasets"]) == 2 and meta["data_shares"] == [0.7, 0.3]
+    r = run_pipeline("--data", f"{expert_dataset},{tmp_path / 'nope'}", "--out", str(tmp_path / "o5"), "--workers", "0")
+    assert r.returncode == 2 and "no dataset there" in r.stderr and not (tmp_path / "o5").exists()
     r = run_pipeline("--data", expert_dataset, "--out", str(tmp_path / "o3"), "--workers", "0",
                      "--set", "train.schedule=linear")
     assert r.returncode == 2 and "train.schedule" in r.stderr and not (tmp_path / "o3").exists()

@@ -51,9 +51,18 @@ class DatasetConfig:
     # each continuation is kept as an episode, and training chunks start only at an episode's first step
     # (sample_until = 1): every label is then the expert's answer to the positions alone. 0 = off (the paper).
     restart_every: int = 0
+    # With expert.disturb > 0 (DART), training chunks of each episode start in the `disturb_window` steps after its
+    # disturbance ends (sample_from / sample_until): states off the expert's course, labelled with its recovery.
+    # The steps before are kept as the episode's history (a last-move model reads the push). 0 = anywhere.
+    disturb_window: int = 16
 
 
-def check(dc: DatasetConfig) -> None:
+def check(dc: DatasetConfig, ec: ExpertConfig | None = None) -> None:
+    if ec is not None:
+        LaplacianExpert(ec, TaskConfig())  # a bad expert.disturb is named here, before anything is written
+        if ec.disturb > 0 and dc.restart_every > 0:
+            raise ValueError("expert.disturb and dataset.restart_every choose where chunks start in two ways; "
+                             "set one of them (DART episodes: expert.disturb; Markov labels: restart_every)")
     if dc.num_maps is not None and dc.num_maps < 1:
         raise ValueError(f"--num-maps {dc.num_maps}: must be >= 1; omit it to use every map of the split")
     if dc.seed < 0:
@@ -61,6 +70,9 @@ def check(dc: DatasetConfig) -> None:
     if dc.restart_every < 0:
         raise ValueError(f"dataset.restart_every={dc.restart_every}: must be >= 0 (0 = off, k = restart the expert "
                          f"from every k-th step, e.g. 40)")
+    if dc.disturb_window < 0:
+        raise ValueError(f"dataset.disturb_window={dc.disturb_window}: must be >= 0 (steps after an expert.disturb "
+                         f"push where chunks start; 0 = anywhere)")
     if dc.episodes_per_map < 1 or dc.maps_per_unit < 1:
         raise ValueError("dataset.episodes_per_map and dataset.maps_per_unit must be >= 1")
     if not dc.team_sizes or any(n < 1 or w < 0 for n, w in dc.team_sizes.items()) \
@@ -169,7 +181,7 @@ def generate_unit(ctx: dict, payload: dict, cache: dict) -> dict:
         for i, ep in expert.run([t for _, t in group], by_id):
             episode_id, task = group[i]
             row = episode_record(episode_id, "laplacian", task, by_id[task.map_id], ep.positions, cfg.task,
-                                 task.seed)
+                                 task.seed) | disturbance_window(ep.info.get("disturbed_at", -1), cfg.expert, dc)
             stats = by_n.setdefault(str(n), [0, 0, 0])  # attempted, succeeded, kept
             stats[0] += 1
             stats[1] += int(row["success"])
@@ -190,6 +202,14 @@ def generate_unit(ctx: dict, payload: dict, cache: dict) -> dict:
     atomic_write_table(episodes_table(rows), ep_path, "episodes",
                        {"fingerprint": ctx["fingerprint"], "unit": summary})
     return summary
+
+
+def disturbance_window(at: int, ec: ExpertConfig, dc: DatasetConfig) -> dict:
+    """The columns that make a DART episode's training chunks start right after its disturbance ({} if none)."""
+    if at < 0 or dc.disturb_window <= 0:
+        return {}
+    start = at + ec.disturb_steps
+    return {"source": "dart", "sample_from": start, "sample_until": start + dc.disturb_window}
 
 
 def restart_rows(rows: list[dict], maps: dict[str, GridMap], expert: LaplacianExpert, tc: TaskConfig,

@@ -52,7 +52,8 @@ EPISODES_SCHEMA = pa.schema([
 # Columns a planner may add (Roken): safety stops, and the chunk planned at each re-plan (for plots and GIFs):
 # plans holds len(plan_steps) * N * H * 2 values, layout [re-plan][robot][chunk move][x, y].
 # DAgger's relabelled episodes say where they come from: source "dagger" (an expert dataset's rows are "expert",
-# the column absent; "self": a successful rollout of the learner kept as executed, dagger.keep_success) and the
+# the column absent; "self": a successful rollout of the learner kept as executed, dagger.keep_success; "dart": an
+# expert episode pushed off course once, expert.disturb, whose chunks start after the push) and the
 # round that visited the start state; training chunks of such an episode start before step `sample_until`
 # (0 = anywhere), near the learner's state it was relabelled from, and at or after step `sample_from`: the steps
 # before it are the learner's own last moves before that state (dagger.history_steps; 0 = none), kept as history.

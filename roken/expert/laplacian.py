@@ -64,6 +64,13 @@ class ExpertConfig:
     step_limit_factor: float = 3.0  # episode step limit = factor * A* length / max_step + extra
     step_limit_extra: int = 60
     smooth_window: int = 5  # moving-average window of the recorded trajectories (odd; 1 = off)
+    # DART (Laskey et al. 2017: disturbances on the expert's own execution, the expert's answer as the label):
+    # once per episode, at a step drawn from the task's seed in the first 80 % of its nominal duration, every
+    # robot's command gets a constant offset ~ N(0, disturb^2 I) m/step for `disturb_steps` steps, before the
+    # safety filter (the episode stays feasible). The expert, its hidden state intact, then recovers from an
+    # off-course state as a learner's plan leaves it; info["disturbed_at"] says when (-1: none). 0 = off.
+    disturb: float = 0.0
+    disturb_steps: int = 8
     batch_size: int = 64
 
 
@@ -84,6 +91,9 @@ class LaplacianExpert:
     """Runs tasks of one team size through the batched controller."""
 
     def __init__(self, cfg: ExpertConfig, task_cfg: TaskConfig):
+        if cfg.disturb < 0 or cfg.disturb_steps < 1:
+            raise ValueError(f"expert.disturb={cfg.disturb} / expert.disturb_steps={cfg.disturb_steps}: the push "
+                             f"(m/step) must be >= 0 (0 = off) and last >= 1 step")
         self.cfg = cfg
         self.tc = task_cfg
         self.wp = WeightParams(comm_radius=task_cfg.comm_radius, comm_full=cfg.comm_full,
@@ -151,6 +161,10 @@ class LaplacianExpert:
             slot_task[s] = i
             st.reset(s, t, ref)
             st.graphs[s] = gm.safe_graph
+            if cfg.disturb > 0:  # DART: where and how this episode is pushed off course, from the task's seed
+                rng = np.random.default_rng([t.seed, 0xDA27])
+                st.dist_at[s] = rng.integers(0, max(1, int(0.8 * L / tc.max_step)))
+                st.dist_v[s] = rng.normal(0.0, cfg.disturb, (N, 2))
 
         for s in range(S):
             fill(s)
@@ -206,6 +220,11 @@ class LaplacianExpert:
             mix_n = np.linalg.norm(mix, axis=-1)
             lstep = np.minimum(tc.max_step * np.minimum(mix_n, 1.0), dist_t)  # do not overshoot the goal
             v[sl, st.leader] = mix / np.maximum(mix_n, 1e-12)[:, None] * lstep[:, None]
+            if cfg.disturb > 0:  # DART's push, capped at a full step; the filter below still keeps it feasible
+                push = ((st.t >= st.dist_at) & (st.t < st.dist_at + cfg.disturb_steps))[:, None, None]
+                v = v + np.where(push, st.dist_v, 0.0)
+                n_v = np.linalg.norm(v, axis=-1, keepdims=True)
+                v = v * np.minimum(1.0, tc.max_step / np.maximum(n_v, 1e-12))
             # -- inertia damps the period-2 chatter of opposing fields, then the safety filter
             prev = np.where((st.t == 0)[:, None, None], v, st.v_prev) if cfg.warm_start else st.v_prev
             v = (1.0 - cfg.inertia) * v + cfg.inertia * prev
@@ -228,7 +247,8 @@ class LaplacianExpert:
                 gm = maps[tasks[i].map_id]
                 pos, smoothed = smooth_episode(raw, gm, tasks[i], tc, cfg.smooth_window)
                 yield i, ExpertEpisode(pos, reached, int(st.t[s]), float(ref_len[s]),
-                                       {"smoothed": smoothed, "limit": int(limits[s])})
+                                       {"smoothed": smoothed, "limit": int(limits[s]),
+                                        "disturbed_at": int(st.dist_at[s]) if cfg.disturb > 0 else -1})
                 if pending:
                     fill(s)
                 else:
@@ -384,6 +404,8 @@ class _SlotState:
         self.pull_parent = np.full((S, N), -1, np.int64)
         self.pull_age = np.zeros((S, N), np.int64)
         self.graphs: list[GridGraph | None] = [None] * S
+        self.dist_at = np.full(S, -1, np.int64)  # DART: the step an episode's disturbance starts
+        self.dist_v = np.zeros((S, N, 2))  # ... and each robot's command offset while it lasts
 
     def reset(self, s: int, task: Task, ref: np.ndarray):
         self.q[s] = task.starts

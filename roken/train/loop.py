@@ -148,7 +148,7 @@ class Pretraining:
         check_loss(spec.loss)
         check_model(spec.model)
         ckpt.cross_check(spec.model, spec.samples, spec.task.max_step, "config")
-        self.spec, self.data, self.out = spec, data, Path(out)
+        self.spec, self.data, self.data_shares, self.out = spec, data, data_shares, Path(out)
         t = spec.train
         self.device = getattr(backend, "device", None) or pick_device(t.device)
         self.backend = backend or LocalBackend(self.out, self.device)
@@ -243,7 +243,8 @@ class Pretraining:
         return {"model": asdict(self.spec.model), "diffusion": asdict(self.spec.diffusion),
                 "samples": asdict(self.spec.samples), "loss": asdict(self.spec.loss), "train": asdict(self.spec.train),
                 "selfcost": asdict(self.spec.selfcost),
-                "task": asdict(self.spec.task), "dataset": fingerprint(self.data), "code_version": code_version(),
+                "task": asdict(self.spec.task), "dataset": fingerprint(self.data), "data_shares": self.data_shares,
+                "code_version": code_version(),
                 "step": self.step, "ema_offset": self.ema_offset, "init": self.init, "world_size": self.world, "validation": validation or {},
                 "kind": "roken-pretraining"}
 
