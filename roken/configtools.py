@@ -213,6 +213,10 @@ LATER_FIELDS: tuple[tuple[str, Any], ...] = (
     ("samples.prev_noise", 0.0),
     ("samples.early_prob", 0.0),
     ("samples.early_steps", 40),
+    ("expert.disturb", 0.0),  # 2026-12-07, ninth session
+    ("expert.disturb_steps", 8),
+    ("expert.disturb_mode", "random"),
+    ("dataset.disturb_window", 16),
 )
 
 

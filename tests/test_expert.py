@@ -90,3 +90,28 @@ def test_cautious_config_keeps_more_clearance_and_still_solves(mc, tc):
                             for t, e in zip(tasks, eps)])
         p10[name] = np.percentile(c, 10)
     assert p10["cautious"] > p10["default"] + 0.2, p10
+
+
+def test_dart_approach_closes_a_pair_and_the_expert_recovers(mc, tc):
+    # expert.disturb_mode=approach (README "DART"): one robot walks at its nearest team-mate, which holds, so the
+    # pair ends the push far closer than the expert keeps its robots (the safety filter still stops it short of
+    # d_coll_min); the expert then finishes the episode cleanly from there. Without a push nothing changes.
+    import dataclasses
+    import pytest
+    push = ExpertConfig(batch_size=8, disturb=0.25, disturb_steps=16, disturb_mode="approach")
+    runs = {name: _run(mc, tc, 4, range(10), ec)
+            for name, ec in (("none", ExpertConfig(batch_size=8)), ("approach", push))}
+    for name, (tasks, maps, eps) in runs.items():
+        rows = [episode_metrics(e.positions, maps[t.map_id], t.goal, t.leader, tc) for t, e in zip(tasks, eps)]
+        s = summarize(rows)
+        assert s["full_success"] >= 0.7 and s["obstacle_collision"] == 0 and s["inter_collision"] == 0, (name, s)
+    ats = [e.info["disturbed_at"] for e in runs["approach"][2]]
+    assert all(a >= 0 for a in ats) and all(e.info["disturbed_at"] == -1 for e in runs["none"][2])
+    closest = {}
+    for name, (_, _, eps) in runs.items():  # the team at the push's end (the same step in both runs)
+        ends = [e.positions[min(a + 16, len(e.positions) - 1)] for a, e in zip(ats, eps)]
+        closest[name] = np.median([np.min(np.linalg.norm(q[:, None] - q[None], axis=-1) + 99 * np.eye(4))
+                                   for q in ends])
+    assert closest["approach"] < 3.2 < closest["none"], closest
+    with pytest.raises(ValueError, match="disturb_mode"):
+        LaplacianExpert(dataclasses.replace(ExpertConfig(), disturb_mode="toward"), tc)

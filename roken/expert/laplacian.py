@@ -29,6 +29,7 @@ from ..world.grid import GridMap
 from ..world.paths import GridGraph
 from ..world.tasks import Task, TaskConfig, TaskError, check_start
 from ..world.paths import path_length
+from . import dart
 from .reference import leader_reference
 from .smoothing import smooth_episode
 
@@ -64,13 +65,11 @@ class ExpertConfig:
     step_limit_factor: float = 3.0  # episode step limit = factor * A* length / max_step + extra
     step_limit_extra: int = 60
     smooth_window: int = 5  # moving-average window of the recorded trajectories (odd; 1 = off)
-    # DART (Laskey et al. 2017: disturbances on the expert's own execution, the expert's answer as the label):
-    # once per episode, at a step drawn from the task's seed in the first 80 % of its nominal duration, every
-    # robot's command gets a constant offset ~ N(0, disturb^2 I) m/step for `disturb_steps` steps, before the
-    # safety filter (the episode stays feasible). The expert, its hidden state intact, then recovers from an
-    # off-course state as a learner's plan leaves it; info["disturbed_at"] says when (-1: none). 0 = off.
+    # DART (roken/expert/dart.py): once per episode the team is pushed off course for `disturb_steps` steps
+    # (`disturb` m/step; mode random or approach) and the expert's recovery is recorded; 0 = off.
     disturb: float = 0.0
     disturb_steps: int = 8
+    disturb_mode: str = "random"
     batch_size: int = 64
 
 
@@ -91,9 +90,10 @@ class LaplacianExpert:
     """Runs tasks of one team size through the batched controller."""
 
     def __init__(self, cfg: ExpertConfig, task_cfg: TaskConfig):
-        if cfg.disturb < 0 or cfg.disturb_steps < 1:
-            raise ValueError(f"expert.disturb={cfg.disturb} / expert.disturb_steps={cfg.disturb_steps}: the push "
-                             f"(m/step) must be >= 0 (0 = off) and last >= 1 step")
+        if cfg.disturb < 0 or cfg.disturb_steps < 1 or cfg.disturb_mode not in dart.MODES:
+            raise ValueError(f"expert.disturb={cfg.disturb} / disturb_steps={cfg.disturb_steps} / disturb_mode="
+                             f"{cfg.disturb_mode!r}: the push (m/step) must be >= 0 (0 = off), last >= 1 step, and "
+                             f"be 'random' or 'approach'")
         self.cfg = cfg
         self.tc = task_cfg
         self.wp = WeightParams(comm_radius=task_cfg.comm_radius, comm_full=cfg.comm_full,
@@ -162,9 +162,7 @@ class LaplacianExpert:
             st.reset(s, t, ref)
             st.graphs[s] = gm.safe_graph
             if cfg.disturb > 0:  # DART: where and how this episode is pushed off course, from the task's seed
-                rng = np.random.default_rng([t.seed, 0xDA27])
-                st.dist_at[s] = rng.integers(0, max(1, int(0.8 * L / tc.max_step)))
-                st.dist_v[s] = rng.normal(0.0, cfg.disturb, (N, 2))
+                st.dist_at[s], st.dist_v[s], st.dist_who[s] = dart.draw(t.seed, L, tc.max_step, N, cfg.disturb)
 
         for s in range(S):
             fill(s)
@@ -222,7 +220,8 @@ class LaplacianExpert:
             v[sl, st.leader] = mix / np.maximum(mix_n, 1e-12)[:, None] * lstep[:, None]
             if cfg.disturb > 0:  # DART's push, capped at a full step; the filter below still keeps it feasible
                 push = ((st.t >= st.dist_at) & (st.t < st.dist_at + cfg.disturb_steps))[:, None, None]
-                v = v + np.where(push, st.dist_v, 0.0)
+                off, held = dart.push(q, st.dist_v, st.dist_who, cfg.disturb_mode, cfg.disturb)
+                v = np.where(push & held[..., None], 0.0, v) + np.where(push, off, 0.0)
                 n_v = np.linalg.norm(v, axis=-1, keepdims=True)
                 v = v * np.minimum(1.0, tc.max_step / np.maximum(n_v, 1e-12))
             # -- inertia damps the period-2 chatter of opposing fields, then the safety filter
@@ -405,7 +404,8 @@ class _SlotState:
         self.pull_age = np.zeros((S, N), np.int64)
         self.graphs: list[GridGraph | None] = [None] * S
         self.dist_at = np.full(S, -1, np.int64)  # DART: the step an episode's disturbance starts
-        self.dist_v = np.zeros((S, N, 2))  # ... and each robot's command offset while it lasts
+        self.dist_v = np.zeros((S, N, 2))  # ... and each robot's command offset while it lasts (random)
+        self.dist_who = np.zeros(S, np.int64)  # ... or the robot pushed toward its nearest team-mate (approach)
 
     def reset(self, s: int, task: Task, ref: np.ndarray):
         self.q[s] = task.starts
