@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..configtools import from_dict
+from ..expert import dart
 from ..expert.laplacian import ExpertConfig, LaplacianExpert
 from ..world.grid import GridMap
 from ..world.loaders import MapError, find_map_files, load_map_file
@@ -59,7 +60,7 @@ class DatasetConfig:
 
 def check(dc: DatasetConfig, ec: ExpertConfig | None = None) -> None:
     if ec is not None:
-        LaplacianExpert(ec, TaskConfig())  # a bad expert.disturb is named here, before anything is written
+        dart.check(ec.disturb, ec.disturb_steps, ec.disturb_mode)  # named before anything is written
         if ec.disturb > 0 and dc.restart_every > 0:
             raise ValueError("expert.disturb and dataset.restart_every choose where chunks start in two ways; "
                              "set one of them (DART episodes: expert.disturb; Markov labels: restart_every)")

@@ -17,6 +17,13 @@ import numpy as np
 MODES = ("random", "approach")
 
 
+def check(disturb: float, steps: int, mode: str) -> None:
+    """Refuse a push the expert cannot make, naming the settings (the expert and the dataset check call it)."""
+    if disturb < 0 or steps < 1 or mode not in MODES:
+        raise ValueError(f"expert.disturb={disturb} / disturb_steps={steps} / disturb_mode={mode!r}: the push (m/step) "
+                         f"must be >= 0 (0 = off), last >= 1 step, and be one of {', '.join(MODES)}")
+
+
 def draw(seed: int, length: float, max_step: float, n: int, disturb: float) -> tuple[int, np.ndarray, int]:
     """(first step of the push, each robot's offset (n, 2) for `random`, the robot that walks for `approach`);
     length: the leader's reference path (m), so the push comes in the first 80 % of length / max_step steps."""

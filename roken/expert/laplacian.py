@@ -90,10 +90,7 @@ class LaplacianExpert:
     """Runs tasks of one team size through the batched controller."""
 
     def __init__(self, cfg: ExpertConfig, task_cfg: TaskConfig):
-        if cfg.disturb < 0 or cfg.disturb_steps < 1 or cfg.disturb_mode not in dart.MODES:
-            raise ValueError(f"expert.disturb={cfg.disturb} / disturb_steps={cfg.disturb_steps} / disturb_mode="
-                             f"{cfg.disturb_mode!r}: the push (m/step) must be >= 0 (0 = off), last >= 1 step, and "
-                             f"be 'random' or 'approach'")
+        dart.check(cfg.disturb, cfg.disturb_steps, cfg.disturb_mode)
         self.cfg = cfg
         self.tc = task_cfg
         self.wp = WeightParams(comm_radius=task_cfg.comm_radius, comm_full=cfg.comm_full,
