@@ -9,6 +9,15 @@ the same figure (mean distance of the first `--executed` sampled chunk points to
 one candidate, the task's goal, no given robots) on prompts at t = 0 (the team at rest, as every closed-loop
 episode starts), at t = 4..15 (the first re-plans) and at a uniform t, with the first-move cosine of the
 followers and the executed move's length against the expert's.
+
+    python benchmarks/executed_error.py --checkpoint runs/fitm16 --data data/fit16m --levels
+
+`--levels` adds, per checkpoint, where in the diffusion chain the error arises, on prompts drawn as training
+draws them (the dataset's own chunk windows: t = 0 of Markov-label continuations, the push window of DART
+episodes, uniform t otherwise): the executed points' error of the one-step clean-chunk estimate x0_hat(x_k) from
+the label noised to level k, and of DDIM-10 started from the label noised to the level of its i-th step instead of
+from pure noise (from k = 99: the plain sample). A denoiser that had fit its labels would return them from every
+level; the error it leaves at low k is the precision no sampler setting can recover.
 """
 from __future__ import annotations
 
@@ -22,7 +31,10 @@ import torch
 
 from roken.data.loader import collate
 from roken.data.samples import EpisodeBank, make_sample
+from roken.model.diffusion import COND_KEYS, ddim_steps
 from roken.plan.planner import RokenPlanner
+
+LEVELS = (0, 11, 22, 33, 44, 55, 66, 77, 88)
 
 
 def prompts(bank: EpisodeBank, cfg, count: int, t_range: tuple[int, int] | None, seed: int) -> list[dict]:
@@ -68,6 +80,44 @@ def measure(planner: RokenPlanner, batch: list[dict], executed: int, seed: int) 
             "n": len(batch)}
 
 
+@torch.no_grad()
+def levels(planner: RokenPlanner, bank: EpisodeBank, cfg, count: int, executed: int, seed: int) -> tuple[list, list]:
+    """[(k, error of x0_hat(x_k), of eps_hat = 0)], [(k, error of DDIM-10 from x_k)]: executed points, metres."""
+    rng = np.random.default_rng(seed)
+    b = collate([make_sample(bank, int(i), np.random.default_rng(int(rng.integers(1 << 31))), cfg)
+                 for i in rng.choice(len(bank), size=count, replace=count > len(bank))])
+    model, S = planner.model, planner.schedule
+    cond = {k: b[k] for k in COND_KEYS if k in b} | {"map": b["map"]}
+    x0, real = b["chunk"], b["robot_mask"].float()
+    eps = torch.randn(x0.shape, generator=torch.Generator().manual_seed(seed))
+    ctx = model.encode_map(b["map"])
+
+    def err(c: torch.Tensor) -> float:  # executed points of chunk c against the label's, metres
+        d = torch.cumsum(c - x0, dim=2)[:, :, :executed].norm(dim=-1).mean(-1) * cfg.step_scale  # (B, R)
+        return float((d * real).sum() / real.sum())
+
+    def noised(k: int) -> tuple[torch.Tensor, torch.Tensor]:
+        ks = torch.full((len(x0),), k)
+        return S.q_sample(x0, ks, eps), ks
+
+    one = []  # (k, the model's estimate, the noise a zero estimate eps_hat = 0 keeps: the scale of the level)
+    for k in LEVELS:
+        xk, ks = noised(k)
+        one.append((k, err(S.predict_x0(xk, ks, model(xk, ks, cond, ctx=ctx)["eps"])),
+                    err(S.predict_x0(xk, ks, torch.zeros_like(xk)))))
+    seq, chain = ddim_steps(S.K, 10), []
+    for j in sorted({0, 3, 6, len(seq) - 2, len(seq) - 1}):
+        x, _ = noised(seq[j])
+        for i in range(j, len(seq)):  # deterministic DDIM (eta = 0), as the planner samples
+            ks = torch.full((len(x0),), seq[i])
+            x_hat = S.predict_x0(x, ks, model(x, ks, cond, ctx=ctx)["eps"])
+            a = S.abar[seq[i]]
+            a_prev = S.abar[seq[i + 1]] if i + 1 < len(seq) else torch.ones(())
+            x = a_prev.sqrt() * x_hat + (1 - a_prev).sqrt() * (x - a.sqrt() * x_hat) / (1 - a).sqrt()
+        chain.append((seq[j], err(x)))
+    return one, chain
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--checkpoint", nargs="+", required=True)
@@ -75,10 +125,12 @@ def main() -> None:
     ap.add_argument("--prompts", type=int, default=256)
     ap.add_argument("--executed", type=int, default=2, help="chunk points the closed loop executes (replan_every)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--levels", action="store_true", help="also the error at each noise level (see above)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     torch.set_flush_denormal(True)
     bank = EpisodeBank.from_folder(args.data)
+    windows = bank.sample_until
     print(f"machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, one thread; "
           f"{args.data}: {len(bank)} episodes, {args.prompts} prompts per row, DDIM-10, 1 candidate\n")
     print("| checkpoint | prompts at | executed L2 (m) | 1st-move cos follower | 1st-move length / expert's (median) |")
@@ -95,6 +147,17 @@ def main() -> None:
             avg = {k: float(np.average([r[k] for r in rows], weights=w)) for k in ("l2", "cos_f", "len_ratio")}
             print(f"| {path} | {label} ({int(w.sum())}) | {avg['l2']:.3f} | {avg['cos_f']:.3f} | {avg['len_ratio']:.2f} |")
         print(f"<!-- {path}: {time.perf_counter() - t0:.0f} s -->")
+        if args.levels:
+            bank.sample_until = windows  # the dataset's own chunk windows (prompts() clears them)
+            one, chain = levels(planner, bank, cfg, args.prompts, args.executed, args.seed)
+            bank.sample_until = None
+            print(f"\n{path}, {args.prompts} training-window prompts: executed-point error (m) of x0_hat(x_k), "
+                  f"and of DDIM-10 from the label noised to k\n")
+            print("| k | " + " | ".join(str(k) for k, _, _ in one) + " |\n|" + " --- |" * (len(one) + 1))
+            print("| x0_hat(x_k) | " + " | ".join(f"{e:.3f}" for _, e, _ in one) + " |")
+            print("| (eps_hat = 0) | " + " | ".join(f"{e:.3f}" for _, _, e in one) + " |")
+            print("\n| DDIM-10 from k | " + " | ".join(str(k) for k, _ in chain) + " |\n|" + " --- |" * (len(chain) + 1))
+            print("| executed L2 | " + " | ".join(f"{e:.3f}" for _, e in chain) + " |\n")
 
 
 if __name__ == "__main__":

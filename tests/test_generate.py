@@ -236,6 +236,8 @@ def test_disturb_makes_dart_episodes(tmp_path):
         [by_id[k]["sample_from"] for k in bank.episode_ids]
     assert [int(bank.sample_until[i]) for i in range(len(bank.episode_ids))] == \
         [by_id[k]["sample_until"] for k in bank.episode_ids]
+    folder = EpisodeBank.from_folder(str(tmp_path / "dart"))
+    assert (folder.sample_from == bank.sample_from).all() and (folder.sample_until == bank.sample_until).all()
     assert run(push + ["--out", str(tmp_path / "again")]).returncode == 0
     assert shard_bytes(tmp_path / "again") == shard_bytes(tmp_path / "dart")  # the push is the task seed's
     for bad, why in ((["--set", "expert.disturb=-0.1"], "expert.disturb"),
@@ -283,6 +285,8 @@ def test_restart_every_keeps_markov_labels(tmp_path):
     episodes = read_table(str(out), "episodes")
     bank = EpisodeBank.from_arrow(episodes, read_table(str(out), "maps"))
     assert bank.sample_until is not None and (bank.sample_until == 1).all()
+    folder = EpisodeBank.from_folder(str(out))  # what the benchmarks and GRPO's prompts read: the same windows
+    assert folder.sample_until is not None and (folder.sample_until == 1).all()
     # the field's default leaves the fingerprint of datasets made before it (e.g. the model cards' train4)
     old = load_config(None, ["dataset.num_maps=1500", "dataset.episodes_per_map=10", "dataset.team_sizes={4: 1}"])
     assert fingerprint(old) == "d087d934ef9745d5"

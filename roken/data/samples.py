@@ -208,8 +208,12 @@ class EpisodeBank:
 
     @classmethod
     def from_folder(cls, location: str, canvas: int = 140, successful_only: bool = True) -> "EpisodeBank":
-        """A dataset folder or URI written by pipelines/generate.py."""
-        cols = ["episode_id", "map_id", "num_robots", "leader", "num_steps", "goal", "positions"]
+        """A dataset folder or URI written by pipelines/generate.py, with its episodes' chunk windows
+        (`sample_until` / `sample_from` of Markov-label, DART and DAgger episodes) where it has them, as training
+        reads it (roken.train.data)."""
+        names = shards.open_dataset(location, "episodes").schema.names
+        cols = ["episode_id", "map_id", "num_robots", "leader", "num_steps", "goal", "positions"] + \
+            [c for c in ("sample_until", "sample_from") if c in names]
         episodes = shards.read_table(location, "episodes", columns=cols, successful_only=successful_only)
         if episodes.num_rows == 0:
             raise ValueError(f"{location}: no {'successful ' if successful_only else ''}episodes to train on")
