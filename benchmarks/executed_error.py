@@ -31,7 +31,7 @@ import torch
 
 from roken.data.loader import collate
 from roken.data.samples import EpisodeBank, make_sample
-from roken.model.diffusion import COND_KEYS, ddim_steps
+from roken.model.diffusion import COND_KEYS, ddim_sample, ddim_steps, make_prompt
 from roken.plan.planner import RokenPlanner
 
 LEVELS = (0, 11, 22, 33, 44, 55, 66, 77, 88)
@@ -106,15 +106,9 @@ def levels(planner: RokenPlanner, bank: EpisodeBank, cfg, count: int, executed: 
         one.append((k, err(S.predict_x0(xk, ks, model(xk, ks, cond, ctx=ctx)["eps"])),
                     err(S.predict_x0(xk, ks, torch.zeros_like(xk)))))
     seq, chain = ddim_steps(S.K, 10), []
-    for j in sorted({0, 3, 6, len(seq) - 2, len(seq) - 1}):
-        x, _ = noised(seq[j])
-        for i in range(j, len(seq)):  # deterministic DDIM (eta = 0), as the planner samples
-            ks = torch.full((len(x0),), seq[i])
-            x_hat = S.predict_x0(x, ks, model(x, ks, cond, ctx=ctx)["eps"])
-            a = S.abar[seq[i]]
-            a_prev = S.abar[seq[i + 1]] if i + 1 < len(seq) else torch.ones(())
-            x = a_prev.sqrt() * x_hat + (1 - a_prev).sqrt() * (x - a.sqrt() * x_hat) / (1 - a).sqrt()
-        chain.append((seq[j], err(x)))
+    prompt = make_prompt(model, cond, x0, ctx=ctx)
+    for j in sorted({0, 3, 6, len(seq) - 2, len(seq) - 1}):  # deterministic DDIM (eta = 0), as the planner samples
+        chain.append((seq[j], err(ddim_sample(model, S, prompt, 10, start=j, latent=noised(seq[j])[0]).chunk)))
     return one, chain
 
 

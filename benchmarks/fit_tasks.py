@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from roken.config import load_config
-from roken.dagger.relabel import constraint_steps
+from roken.dagger.relabel import first_violation
 from roken.data.store import read_run
 from roken.eval.folder import rollout_config
 from roken.eval.metrics import COMPACT_HEAD, compact_cells, summarize
@@ -49,11 +49,10 @@ def row(name: str, runs: list[np.ndarray], tasks: list[Task], by_id: dict, tc, s
     for P, t in zip(runs, tasks):
         gm = by_id[t.map_id]
         metrics.append(episode_metrics(P, gm, t.goal, t.leader, tc))
-        ok = constraint_steps(P, gm, tc)  # (3, T+1): clearance, spacing, connectivity
-        bad = np.flatnonzero(~ok.all(axis=0))
-        if len(bad):
-            first.append(int(bad[0]))
-            kinds += ~ok[:, bad[0]]
+        at, broken = first_violation(P, gm, tc)  # broken: clearance, spacing, connectivity
+        if broken.any():
+            first.append(at)
+            kinds += broken
     viol = f"{np.median(first):.0f} ({len(first)} ep.)" if first else "-"
     return f"{name:<28}{compact_cells(summarize(metrics))}{viol:>20}{'/'.join(map(str, kinds)):>18}{seconds:>6.0f}"
 

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from roken.config import load_config
-from roken.dagger.relabel import constraint_steps
+from roken.dagger.relabel import constraint_steps, first_violation
 from roken.eval.folder import rollout_config
 from roken.eval.harness import load_maps, make_tasks
 from roken.eval.metrics import COMPACT_HEAD, compact_cells, summarize
@@ -82,11 +82,10 @@ def main() -> None:
             rows.append(episode_metrics(np.asarray(pos[i]), gm, np.asarray(t.goal), t.leader, cfg.task))
             if i not in rest:
                 continue
-            ok = constraint_steps(pos[i][K:], gm, cfg.task)  # (3, T+1-K): clearance, spacing, connectivity
-            bad = np.flatnonzero(~ok.all(axis=0))
-            if len(bad):
-                after.append(int(bad[0]))
-                kinds += ~ok[:, bad[0]]  # what the first infeasible step breaks (it may break more than one)
+            at, broken = first_violation(pos[i][K:], gm, cfg.task)  # broken: clearance, spacing, connectivity
+            if broken.any():
+                after.append(at)
+                kinds += broken  # what the first infeasible step breaks (it may break more than one)
         m = summarize(rows)
         lines.append(f"{K:>5}{len(tasks) - len(rest):>12}{compact_cells(m)}"
                      f"{(f'{np.median(after):.0f} ({len(after)} ep.)' if after else '-'):>28}"

@@ -79,6 +79,14 @@ def constraint_steps(positions: np.ndarray, gm: GridMap, tc: TaskConfig) -> np.n
     return ok
 
 
+def first_violation(positions: np.ndarray, gm: GridMap, tc: TaskConfig) -> tuple[int, np.ndarray]:
+    """(the first infeasible step, T+1 if none; which of clearance, spacing, connectivity it breaks, (3,) bool,
+    all False if none): an episode's end and its cause (it may break more than one)."""
+    ok = constraint_steps(positions, gm, tc)
+    bad = np.flatnonzero(~ok.all(axis=0))
+    return (int(bad[0]), ~ok[:, bad[0]]) if len(bad) else (len(ok[0]), np.zeros(3, bool))
+
+
 def feasible_steps(positions: np.ndarray, gm: GridMap, tc: TaskConfig) -> np.ndarray:
     """(T+1,) whether each recorded state satisfies every constraint (clearance, spacing, connected)."""
     return constraint_steps(positions, gm, tc).all(axis=0)
@@ -88,8 +96,7 @@ def feasible_span(positions: np.ndarray, gm: GridMap, goal: np.ndarray, leader: 
                   ) -> tuple[int, int]:
     """(the first infeasible step, T+1 if none; the end of the states worth learning from: that step or the
     leader's arrival at the goal, the earlier)."""
-    bad = np.flatnonzero(~feasible_steps(positions, gm, tc))
-    first_bad = int(bad[0]) if len(bad) else len(positions)
+    first_bad, _ = first_violation(positions, gm, tc)
     reached = np.flatnonzero(np.linalg.norm(positions[:, leader] - goal, axis=-1) <= tc.eps_goal)
     return first_bad, min(first_bad, int(reached[0]) if len(reached) else len(positions))
 

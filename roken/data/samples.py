@@ -157,6 +157,16 @@ class MapStore:
         return self._sdf[m]
 
 
+EPISODE_COLUMNS = ["episode_id", "map_id", "num_robots", "leader", "num_steps", "goal", "positions"]
+WINDOW_COLUMNS = ("sample_until", "sample_from")  # where chunks may start (DAgger, Markov-label, DART episodes)
+
+
+def episode_columns(location: str) -> list[str]:
+    """The episode columns a bank reads from a dataset: EPISODE_COLUMNS and the chunk windows it has."""
+    names = shards.open_dataset(location, "episodes").schema.names
+    return EPISODE_COLUMNS + [c for c in WINDOW_COLUMNS if c in names]
+
+
 class EpisodeBank:
     """Episodes as flat numpy arrays (zero-copy from Arrow) over a MapStore, indexable by episode.
 
@@ -211,10 +221,8 @@ class EpisodeBank:
         """A dataset folder or URI written by pipelines/generate.py, with its episodes' chunk windows
         (`sample_until` / `sample_from` of Markov-label, DART and DAgger episodes) where it has them, as training
         reads it (roken.train.data)."""
-        names = shards.open_dataset(location, "episodes").schema.names
-        cols = ["episode_id", "map_id", "num_robots", "leader", "num_steps", "goal", "positions"] + \
-            [c for c in ("sample_until", "sample_from") if c in names]
-        episodes = shards.read_table(location, "episodes", columns=cols, successful_only=successful_only)
+        episodes = shards.read_table(location, "episodes", columns=episode_columns(location),
+                                     successful_only=successful_only)
         if episodes.num_rows == 0:
             raise ValueError(f"{location}: no {'successful ' if successful_only else ''}episodes to train on")
         return cls.from_arrow(episodes, shards.read_table(location, "maps"), canvas)

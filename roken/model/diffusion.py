@@ -166,13 +166,14 @@ def ddim_steps(K: int, steps: int) -> list[int]:
 @torch.no_grad()
 def ddim_sample(model: RokenDiT, sched: NoiseSchedule, prompt: Prompt, steps: int = 10, eta: float = 0.0,
                 generator: torch.Generator | None = None, noise=None, guide=None, guide_steps: int = 0,
-                stop: int | None = None) -> Rollout:
+                stop: int | None = None, start: int = 0, latent: torch.Tensor | None = None) -> Rollout:
     """DDIM (Song et al.) over `steps` evenly spaced diffusion steps; eta = 0 is deterministic. `guide(x0, given,
     fixed)` (roken.plan.guidance) moves the predicted clean chunk at the last `guide_steps` steps. `stop`: only
-    the first `stop` steps, the latent there returned as `chunk` (the `selfcost` term grades the next step)."""
-    x = _randn(prompt.given.shape, generator, prompt.given.device, noise)
+    the first `stop` steps, the latent there returned as `chunk` (the `selfcost` term grades the next step).
+    `start`, `latent`: begin at the start-th step from that latent (SDEdit-style) instead of from pure noise."""
+    x = _randn(prompt.given.shape, generator, prompt.given.device, noise) if latent is None else latent
     seq = ddim_steps(sched.K, steps)
-    for i, k in enumerate(seq[:stop]):
+    for i, k in list(enumerate(seq[:stop]))[start:]:
         eps, ks = _eps(model, prompt, x, k)
         a = sched.abar[k]
         a_prev = sched.abar[seq[i + 1]] if i + 1 < len(seq) else torch.ones((), device=x.device)

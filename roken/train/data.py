@@ -19,9 +19,7 @@ import torch
 
 from ..data import fs, shards
 from ..data.loader import collate
-from ..data.samples import EpisodeBank, MapStore, SampleConfig, check, make_sample
-
-EPISODE_COLUMNS = ["episode_id", "map_id", "num_robots", "leader", "num_steps", "goal", "positions"]
+from ..data.samples import WINDOW_COLUMNS, EpisodeBank, MapStore, SampleConfig, check, episode_columns, make_sample
 
 
 class SampleStream(torch.utils.data.Dataset):
@@ -145,12 +143,10 @@ def _unique_maps(tables: list[pa.Table]) -> pa.Table:
 
 def _read(location: str) -> tuple[pa.Table, pa.Table]:
     check_dataset(location)
-    names = shards.open_dataset(location, "episodes").schema.names
-    windows = ("sample_until", "sample_from")  # where chunks may start (DAgger's relabelled episodes)
-    cols = EPISODE_COLUMNS + [c for c in windows if c in names]
+    cols = episode_columns(location)
     episodes = shards.read_table(location, "episodes", columns=cols, successful_only=True)
-    for c in windows:  # 0 = no bound (expert episodes); lets datasets with and without the columns be mixed
-        if c not in names:
+    for c in WINDOW_COLUMNS:  # 0 = no bound (expert episodes); lets datasets with and without the columns be mixed
+        if c not in cols:
             episodes = episodes.append_column(c, pa.array(np.zeros(episodes.num_rows, np.int32)))
     return episodes, shards.read_table(location, "maps")
 
