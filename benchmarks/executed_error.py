@@ -76,8 +76,8 @@ def measure(planner: RokenPlanner, batch: list[dict], executed: int, seed: int) 
         if ok.any():
             cos.extend((m[ok] * e[ok]).sum(-1) / (np.linalg.norm(m[ok], axis=-1) * np.linalg.norm(e[ok], axis=-1) + 1e-9))
             ratio.extend(np.linalg.norm(m[ok], axis=-1) / np.linalg.norm(e[ok], axis=-1))
-    return {"l2": float(np.mean(l2)), "cos_f": float(np.mean(cos)), "len_ratio": float(np.median(ratio)),
-            "n": len(batch)}
+    return {"l2": float(np.mean(l2)), "cos_f": float(np.mean(cos)) if cos else np.nan,  # (a small last batch may
+            "len_ratio": float(np.median(ratio)) if ratio else np.nan, "n": len(batch)}  # hold no moving follower)
 
 
 @torch.no_grad()
@@ -112,6 +112,13 @@ def levels(planner: RokenPlanner, bank: EpisodeBank, cfg, count: int, executed: 
     return one, chain
 
 
+def _average(values: list[float], weights: np.ndarray) -> float:
+    """The prompt-weighted mean of per-batch figures, over the batches that have one."""
+    v = np.asarray(values, float)
+    ok = ~np.isnan(v)
+    return float(np.average(v[ok], weights=weights[ok])) if ok.any() else float("nan")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--checkpoint", nargs="+", required=True)
@@ -138,7 +145,7 @@ def main() -> None:
             batch = prompts(bank, cfg, args.prompts, rng_t, args.seed)
             rows = [measure(planner, batch[k:k + 64], args.executed, args.seed + k) for k in range(0, len(batch), 64)]
             w = np.array([r["n"] for r in rows], float)
-            avg = {k: float(np.average([r[k] for r in rows], weights=w)) for k in ("l2", "cos_f", "len_ratio")}
+            avg = {k: _average([r[k] for r in rows], w) for k in ("l2", "cos_f", "len_ratio")}
             print(f"| {path} | {label} ({int(w.sum())}) | {avg['l2']:.3f} | {avg['cos_f']:.3f} | {avg['len_ratio']:.2f} |")
         print(f"<!-- {path}: {time.perf_counter() - t0:.0f} s -->")
         if args.levels:

@@ -15,6 +15,7 @@ from roken.config import load_config
 from roken.dagger import run_dagger, select_states
 from roken.dagger.rounds import round_config
 from roken.dagger.relabel import constraint_steps, feasible_steps
+from roken.data.store import read_run
 from roken.expert.laplacian import ExpertConfig, LaplacianExpert
 from roken.train.data import load_banks
 from roken.train.loop import Pretraining, PretrainSpec
@@ -89,9 +90,11 @@ def _run(cfg, model, data, out, train=None):
 
 def test_a_round_writes_valid_relabelled_shards_and_resumes_exactly(expert_dataset, tmp_path):
     model = _tiny_model(expert_dataset, tmp_path / "pre")
-    cfg = load_config(None, TINY)
+    cfg = load_config(None, TINY + ["dagger.num_maps=1"])  # every rollout on the first train map
     a = _run(cfg, model, expert_dataset, tmp_path / "a")
     data = tmp_path / "a" / "round-00" / "data"
+    maps, rollouts = read_run(tmp_path / "a" / "round-00" / "rollouts")
+    assert len(rollouts) == cfg.dagger.episodes and {e["map_id"] for e in rollouts} == set(maps) == {"train-000000"}
     r = cli("roken", "validate", str(data))
     assert r.returncode == 0 and "manifest finished" in r.stdout, r.stderr
     tab = pq.read_table(data / "episodes" / "relabel.parquet")
@@ -118,7 +121,10 @@ def test_a_round_writes_valid_relabelled_shards_and_resumes_exactly(expert_datas
     again = _run(copy.deepcopy(cfg), model, expert_dataset, tmp_path / "b")  # finished: nothing re-run
     assert again["rounds"] == b["rounds"]
     with pytest.raises(ValueError, match="dagger.share"):
-        _run(load_config(None, TINY + ["dagger.share=0.25"]), model, expert_dataset, tmp_path / "b")
+        _run(load_config(None, TINY + ["dagger.num_maps=1", "dagger.share=0.25"]), model, expert_dataset,
+             tmp_path / "b")
+    with pytest.raises(ValueError, match="dagger.num_maps=0"):
+        _run(load_config(None, TINY + ["dagger.num_maps=0"]), model, expert_dataset, tmp_path / "c")
 
 
 def test_only_failed_rollouts_are_relabelled_when_asked_and_the_planner_must_be_a_roken_row():
@@ -138,6 +144,15 @@ def test_only_failed_rollouts_are_relabelled_when_asked_and_the_planner_must_be_
     check(DaggerConfig(planner="roken+guided+geodesic"))
     with pytest.raises(ValueError, match="dagger.planner"):
         check(DaggerConfig(planner="laplacian"))
+
+
+def test_rollouts_take_new_tasks_each_round_or_round_zeros_with_same_tasks():
+    from roken.dagger.relabel import DaggerConfig
+    from roken.dagger.rounds import rollout_seed
+
+    assert len({rollout_seed(DaggerConfig(), r) for r in range(5)}) == 5
+    assert {rollout_seed(DaggerConfig(same_tasks=True), r) for r in range(5)} == {rollout_seed(DaggerConfig(), 0)}
+    assert rollout_seed(DaggerConfig(seed=1), 0) != rollout_seed(DaggerConfig(seed=0), 0)
 
 
 @pytest.mark.parametrize("recipe", sorted(p.name for p in (ROOT / "configs" / "dagger").glob("*.yaml")))

@@ -26,6 +26,12 @@ from ..world.tasks import Task, TaskConfig, check_start
 class DaggerConfig:
     rounds: int = 4  # rollout -> relabel -> train, each round from the previous round's model
     episodes: int = 96  # closed-loop rollouts per round, on `train` maps (new tasks every round)
+    # The rollouts' maps: the first this many of the `train` split (None = the whole split, one task per map).
+    # A few maps make DAgger's loop small enough to watch converge on two cores (README "DAgger on one map").
+    num_maps: int | None = None
+    # Every round on round 0's tasks (a fixed, finite task set) instead of new tasks: whether relabelling the
+    # learner's own states closes the loop on tasks it keeps meeting, before asking it to generalise.
+    same_tasks: bool = False
     robots: int = 4
     state_every: int = 40  # simulator steps between relabelled states along a rollout (10 plan moves)
     max_states: int = 6  # per rollout: the last feasible state before its first violation, then the others
@@ -55,6 +61,8 @@ def check(dc: DaggerConfig) -> None:
         raise ValueError(f"dagger.sample_steps={dc.sample_steps}: must be >= 0 (0 = chunks start anywhere)")
     if dc.history_steps < 0:
         raise ValueError(f"dagger.history_steps={dc.history_steps}: must be >= 0 (0 = relabels start at rest)")
+    if dc.num_maps is not None and dc.num_maps < 1:
+        raise ValueError(f"dagger.num_maps={dc.num_maps}: must be >= 1; leave it unset (null) to use every train map")
     for k in ("rounds", "episodes", "robots", "state_every", "max_states", "steps_per_round"):
         if getattr(dc, k) < 1:
             raise ValueError(f"dagger.{k} must be >= 1, got {getattr(dc, k)}")

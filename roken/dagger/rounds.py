@@ -66,12 +66,17 @@ def check_run(out: str | Path, cfg, checkpoint: str, data: str, val_data: str | 
         atomic_write_json(new, path)
 
 
+def rollout_seed(dc: DaggerConfig, r: int) -> int:
+    """The task seed of round r's rollouts: new tasks every round, or round 0's with `dagger.same_tasks`."""
+    return 1000 * (dc.seed + 1) + (0 if dc.same_tasks else r)
+
+
 def rollout(cfg, dc: DaggerConfig, model: str, r: int, out: Path, runner) -> dict:
     """The current model in closed loop on this round's `train` tasks (`dagger.planner`, plan section as
     configured)."""
     c = copy.deepcopy(cfg)
     c.eval = EvalConfig(planner=dc.planner, robots=[dc.robots], episodes=dc.episodes, maps="train",
-                        seed=1000 * (dc.seed + 1) + r, unit_episodes=16)
+                        num_maps=dc.num_maps, seed=rollout_seed(dc, r), unit_episodes=16)
     c.plan.checkpoint, c.plan.which = model, "latest"
     return evaluate(c, out, runner)
 
