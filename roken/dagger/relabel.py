@@ -27,7 +27,7 @@ class DaggerConfig:
     rounds: int = 4  # rollout -> relabel -> train, each round from the previous round's model
     episodes: int = 96  # closed-loop rollouts per round, on `train` maps (new tasks every round)
     # The rollouts' maps: the first this many of the `train` split (None = the whole split, one task per map).
-    # A few maps make DAgger's loop small enough to watch converge on two cores (README "DAgger on one map").
+    # A few maps make DAgger's loop small enough to watch converge on two cores (README "Results: DAgger on one map").
     num_maps: int | None = None
     # Every round on round 0's tasks (a fixed, finite task set) instead of new tasks: whether relabelling the
     # learner's own states closes the loop on tasks it keeps meeting, before asking it to generalise.
