@@ -103,7 +103,7 @@ def levels(planner: RokenPlanner, bank: EpisodeBank, cfg, count: int, executed: 
     one = []  # (k, the model's estimate, the noise a zero estimate eps_hat = 0 keeps: the scale of the level)
     for k in LEVELS:
         xk, ks = noised(k)
-        one.append((k, err(S.predict_x0(xk, ks, model(xk, ks, cond, ctx=ctx)["eps"])),
+        one.append((k, err(S.predict_x0(xk, ks, S.eps_from(model(xk, ks, cond, ctx=ctx)["eps"], xk, ks))),
                     err(S.predict_x0(xk, ks, torch.zeros_like(xk)))))
     seq, chain = ddim_steps(S.K, 10), []
     prompt = make_prompt(model, cond, x0, ctx=ctx)

@@ -158,13 +158,37 @@ def test_loss_terms_switch_off_and_absolute_representation_runs(batch):
     assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
 
 
-def test_small_model_overfits_a_handful_of_samples_and_samples_them_back(batch):
-    """Loss on 4 fixed samples falls by a large factor, and then DDPM samples land close to their chunks."""
+@pytest.mark.parametrize("prediction", ["eps", "v", "x0"])
+def test_every_parametrisation_gives_back_the_noise_and_weights_the_eps_loss_as_documented(prediction):
+    """diffusion.prediction: the target of a (x0, eps, k) draw reads back as eps and as x0; an output's squared
+    error in its own parametrisation is the eps error times 1 (eps), 1 / abar (v) or (1 - abar) / abar (x0)."""
+    sched = NoiseSchedule(DiffusionConfig(num_steps=100, prediction=prediction, clip_sample=0))
+    g = torch.Generator().manual_seed(0)
+    x0, eps = torch.randn(8, 4, 16, 2, generator=g), torch.randn(8, 4, 16, 2, generator=g)
+    k = torch.tensor([0, 1, 10, 40, 70, 90, 98, 99])
+    xk = sched.q_sample(x0, k, eps)
+    back = sched.eps_from(sched.target(x0, eps, k), xk, k)
+    torch.testing.assert_close(back, eps, atol=2e-3, rtol=1e-3)
+    torch.testing.assert_close(sched.predict_x0(xk[:6], k[:6], back[:6]), x0[:6], atol=2e-3, rtol=1e-3)
+    out = sched.target(x0, eps, k) + 0.1 * torch.randn(x0.shape, generator=g)  # an imperfect denoiser
+    own = ((out - sched.target(x0, eps, k)) ** 2).mean(dim=(1, 2, 3))
+    in_eps = ((sched.eps_from(out, xk, k) - eps) ** 2).mean(dim=(1, 2, 3))
+    a = sched.abar[k].double()
+    weight = {"eps": torch.ones_like(a), "v": 1 / a, "x0": (1 - a) / a}[prediction]
+    torch.testing.assert_close(own.double(), in_eps.double() * weight, rtol=2e-3, atol=1e-6)
+    with pytest.raises(ValueError, match="diffusion.prediction must be one of eps, v, x0"):
+        NoiseSchedule(DiffusionConfig(prediction="sample"))
+
+
+@pytest.mark.parametrize("prediction", ["eps", "v", "x0"])
+def test_small_model_overfits_a_handful_of_samples_and_samples_them_back(batch, prediction):
+    """Loss on 4 fixed samples falls by a large factor, and then DDPM samples land close to their chunks, in
+    every parametrisation of the denoiser (diffusion.prediction)."""
     torch.manual_seed(0)
     few = {k: v[:4] for k, v in batch.items()}
     few["traj_mask"] = torch.zeros_like(few["traj_mask"])
     model = RokenDiT(preset("tiny"))
-    sched = NoiseSchedule(DiffusionConfig(num_steps=50))
+    sched = NoiseSchedule(DiffusionConfig(num_steps=50, prediction=prediction))
     cfg = LossConfig(sdf=0.0)  # L_sdf pulls away from the expert inside 4 m of walls; it has its own test
     opt = torch.optim.AdamW(model.parameters(), lr=2e-3)
 

@@ -20,6 +20,7 @@ import torch
 
 from .dit import MapContext, RokenDiT
 
+PREDICTIONS = ("eps", "v", "x0")
 COND_KEYS = ("start", "rel_goal", "goal_mask", "traj_mask", "robot_mask", "prev_move")
 
 
@@ -30,19 +31,31 @@ class DiffusionConfig:
     beta_start: float = 1e-4  # linear schedule only
     beta_end: float = 0.02
     clip_sample: float = 1.0  # clip the predicted clean chunk to [-c, c]; a full-speed move is 1 (0 = no clip)
+    # What the denoiser outputs (and its loss compares): "eps", the noise (the paper's, DDPM's); "v" =
+    # sqrt(abar) eps - sqrt(1 - abar) x0 (Salimans & Ho 2022: the eps loss weighted by 1 / abar, so the
+    # noisiest steps, which choose the plan, are learned as much as the last ones); "x0", the clean chunk
+    # (Diffuser's, Janner et al. 2022: the eps loss weighted by (1 - abar) / abar). The samplers, GRPO and the
+    # auxiliary losses read it as eps through NoiseSchedule.eps_from, so all work with any of the three.
+    prediction: str = "eps"
+
+
+def check(cfg: DiffusionConfig) -> None:
+    if cfg.schedule not in ("cosine", "linear"):
+        raise ValueError(f"diffusion.schedule must be 'cosine' or 'linear', got {cfg.schedule!r}")
+    if cfg.prediction not in PREDICTIONS:
+        raise ValueError(f"diffusion.prediction must be one of {', '.join(PREDICTIONS)}, got {cfg.prediction!r}")
 
 
 class NoiseSchedule:
     def __init__(self, cfg: DiffusionConfig, device: torch.device | str = "cpu"):
+        check(cfg)
         K = cfg.num_steps
         if cfg.schedule == "cosine":
             s = 0.008
             f = torch.cos((torch.arange(K + 1, dtype=torch.float64) / K + s) / (1 + s) * math.pi / 2) ** 2
             betas = (1 - f[1:] / f[:-1]).clamp(max=0.999)
-        elif cfg.schedule == "linear":
+        else:  # linear
             betas = torch.linspace(cfg.beta_start, cfg.beta_end, K, dtype=torch.float64)
-        else:
-            raise ValueError(f"diffusion.schedule must be 'cosine' or 'linear', got {cfg.schedule!r}")
         self.cfg, self.K = cfg, K
         alphas = 1 - betas
         abar = torch.cumprod(alphas, 0)
@@ -63,6 +76,26 @@ class NoiseSchedule:
     def q_sample(self, x0, k, eps):
         a = self._at("abar", k)
         return a.sqrt() * x0 + (1 - a).sqrt() * eps
+
+    def eps_from(self, out, xk, k):
+        """The noise estimate (B, R, H, 2) from the denoiser's output `out` at x_k (diffusion.prediction)."""
+        p = self.cfg.prediction
+        if p == "eps":
+            return out
+        a = self._at("abar", k)
+        if p == "v":  # eps = sqrt(abar) v + sqrt(1 - abar) x_k
+            return a.sqrt() * out + (1 - a).sqrt() * xk
+        return (xk - a.sqrt() * out) / (1 - a).sqrt()  # x0
+
+    def target(self, x0, eps, k):
+        """What the denoiser should output for the clean chunk x0 noised by eps at step k (its loss target)."""
+        p = self.cfg.prediction
+        if p == "eps":
+            return eps
+        if p == "v":
+            a = self._at("abar", k)
+            return a.sqrt() * eps - (1 - a).sqrt() * x0
+        return x0
 
     def predict_x0(self, xk, k, eps):
         a = self._at("abar", k)
@@ -113,9 +146,15 @@ def _randn(shape, generator, device, noise):
     return noise(shape).to(device) if noise is not None else torch.randn(shape, generator=generator, device=device)
 
 
-def _eps(model, prompt: Prompt, x, k: int):
+def model_eps(model, sched: NoiseSchedule, prompt: Prompt, x, ks: torch.Tensor) -> torch.Tensor:
+    """The model's noise estimate (B, R, H, 2) at x_k, the conditioned robots held at their given chunks."""
+    xin = torch.where(prompt.fixed, prompt.given, x)
+    return sched.eps_from(model(xin, ks, prompt.cond, ctx=prompt.ctx)["eps"], xin, ks)
+
+
+def _eps(model, sched: NoiseSchedule, prompt: Prompt, x, k: int):
     ks = torch.full((x.shape[0],), k, device=x.device, dtype=torch.long)
-    return model(torch.where(prompt.fixed, prompt.given, x), ks, prompt.cond, ctx=prompt.ctx)["eps"], ks
+    return model_eps(model, sched, prompt, x, ks), ks
 
 
 @dataclass
@@ -135,7 +174,7 @@ def ddpm_sample(model: RokenDiT, sched: NoiseSchedule, prompt: Prompt, generator
     x = torch.where(prompt.fixed, prompt.given, x)
     lat, means, sigmas, lps = [x], [], [], []
     for k in range(sched.K - 1, -1, -1):
-        eps, ks = _eps(model, prompt, x, k)
+        eps, ks = _eps(model, sched, prompt, x, k)
         mean, sigma = sched.posterior(x, ks, eps)
         x_new = mean + sigma * _randn(x.shape, generator, x.device, noise)
         x_new = torch.where(prompt.fixed, prompt.given, x_new)
@@ -154,7 +193,7 @@ def ddpm_sample(model: RokenDiT, sched: NoiseSchedule, prompt: Prompt, generator
 def transition_logprob(model: RokenDiT, sched: NoiseSchedule, prompt: Prompt, x_k: torch.Tensor, k: torch.Tensor,
                        x_prev: torch.Tensor) -> torch.Tensor:
     """log p_theta(x_prev | x_k) (B,) under the current weights, with gradients: GRPO's ratio."""
-    eps = model(torch.where(prompt.fixed, prompt.given, x_k), k, prompt.cond, ctx=prompt.ctx)["eps"]
+    eps = model_eps(model, sched, prompt, x_k, k)
     mean, sigma = sched.posterior(x_k, k, eps)
     return gaussian_logprob(x_prev, mean, sigma, prompt.generated)
 
@@ -174,7 +213,7 @@ def ddim_sample(model: RokenDiT, sched: NoiseSchedule, prompt: Prompt, steps: in
     x = _randn(prompt.given.shape, generator, prompt.given.device, noise) if latent is None else latent
     seq = ddim_steps(sched.K, steps)
     for i, k in list(enumerate(seq[:stop]))[start:]:
-        eps, ks = _eps(model, prompt, x, k)
+        eps, ks = _eps(model, sched, prompt, x, k)
         a = sched.abar[k]
         a_prev = sched.abar[seq[i + 1]] if i + 1 < len(seq) else torch.ones((), device=x.device)
         x0 = sched.predict_x0(x, ks, eps)

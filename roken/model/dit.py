@@ -386,8 +386,9 @@ class RokenDiT(nn.Module):
         """x (B, R, H, 2) noisy chunks (conditioned robots hold their clean chunk), k (B,) diffusion steps,
         cond: start (B, R, 2) m, rel_goal (B, R, 2), goal_mask, traj_mask (B, R), robot_mask (B, R) bool,
         prev_move (B, R, 2) (read with model.prev_move),
-        map (Bm, 3, S, S) with B = Bm * G (G candidates per map). Returns eps (B, R, H, 2) and, with aux,
-        waypoints (B, R, K, 2), occ_small / occ_large logits (B, R, P, P)."""
+        map (Bm, 3, S, S) with B = Bm * G (G candidates per map). Returns eps (B, R, H, 2), the denoiser's
+        output: the noise, or v or x0 per diffusion.prediction (NoiseSchedule.eps_from reads it as the noise);
+        with aux, waypoints (B, R, K, 2), occ_small / occ_large logits (B, R, P, P)."""
         B, R, H, _ = x.shape
         if ctx is None:
             ctx = self.encode_map(cond["map"])

@@ -148,7 +148,8 @@ def pretraining_loss(model: RokenDiT, sched: NoiseSchedule, batch: dict, loss_cf
     first = slice(None, None, K)  # each sample's first draw: the auxiliary losses, once per sample
 
     terms: dict[str, torch.Tensor] = {}
-    sq = (out["eps"] - eps) ** 2  # (BK, R, H, 2)
+    # the denoiser's output against its target in its own parametrisation (diffusion.prediction)
+    sq = (out["eps"] - sched.target(x0, eps, k)) ** 2  # (BK, R, H, 2)
     if loss_cfg.executed_weight != 1.0:
         H = sq.shape[2]
         w = torch.ones(H, device=sq.device)
@@ -202,7 +203,7 @@ def _sdf_term(sched, batch, loss_cfg, sample_cfg, out, x0, xk, k, fixed, gen, K,
 
 def _predicted_points(sched, loss_cfg, sample_cfg, out, x0, xk, k, fixed, start):
     """The predicted clean chunk as points in metres (BK, R, H, 2), per loss.sdf_mode, and its weight (BK, 1, 1)."""
-    x0_hat = torch.where(fixed.bool()[:, :, None, None], x0, sched.predict_x0(xk, k, out["eps"]))
+    x0_hat = torch.where(fixed.bool()[:, :, None, None], x0, sched.predict_x0(xk, k, sched.eps_from(out["eps"], xk, k)))
     if loss_cfg.sdf_mode == "stopgrad" and sample_cfg.representation == "relative":
         # point h = start + (moves 0..h-1, no gradient) + move h: a point's penalty moves only its own move
         before = torch.cumsum(x0_hat.detach(), dim=2) - x0_hat.detach()

@@ -24,7 +24,7 @@ import torch
 
 import numpy as np
 
-from ..model.diffusion import COND_KEYS, NoiseSchedule, Prompt, make_prompt
+from ..model.diffusion import COND_KEYS, NoiseSchedule, Prompt, make_prompt, model_eps
 from ..model.dit import RokenDiT
 
 
@@ -50,7 +50,7 @@ def trained_steps(K: int, count: int, how: str = "last", skip_final: bool = True
 def policy_mean(model: RokenDiT, sched: NoiseSchedule, prompt: Prompt, x: torch.Tensor,
                 ks: torch.Tensor) -> torch.Tensor:
     """mu_theta(x_k, c, k) (B, R, H, 2): the DDPM posterior mean from the straight-through-clipped x0."""
-    eps = model(torch.where(prompt.fixed, prompt.given, x), ks, prompt.cond, ctx=prompt.ctx)["eps"]
+    eps = model_eps(model, sched, prompt, x, ks)
     a = sched._at("abar", ks)
     x0 = (x - (1 - a).sqrt() * eps) / a.sqrt()
     c = sched.cfg.clip_sample

@@ -39,7 +39,7 @@ import torch
 
 from ..data.condition import build_condition
 from ..data.samples import SampleConfig
-from ..model.diffusion import COND_KEYS, NoiseSchedule, ddim_sample, ddim_steps, make_prompt
+from ..model.diffusion import COND_KEYS, NoiseSchedule, ddim_sample, ddim_steps, make_prompt, model_eps
 from ..model.losses import decode_chunk, sdf_at
 from ..plan.guidance import Guide, finite_geodesic
 from ..plan.rollout import PlanConfig
@@ -164,7 +164,7 @@ class SelfCost:
         # DDIM (eta = 0) to the graded step without gradients, as the planner samples; then one model call with them
         x = ddim_sample(model, sched, prompt, sc.steps, noise=lambda shape: x_T, stop=graded).chunk  # (B G, R, H, 2)
         ks = torch.full((x.shape[0],), seq[graded], device=dev, dtype=torch.long)
-        x0 = sched.predict_x0(x, ks, model(x, ks, prompt.cond, ctx=prompt.ctx)["eps"])
+        x0 = sched.predict_x0(x, ks, model_eps(model, sched, prompt, x, ks))
         start = prompt.cond["start"]
         p = decode_chunk(x0, start, self.samples)  # (B G, R, H, 2) metres
         real = np.stack([c["robot_mask"] for c in conds])

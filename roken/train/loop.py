@@ -24,7 +24,7 @@ from ..devices import pick_device
 from ..data.loader import to_device
 from ..data.store import atomic_write_json
 from ..data.samples import SampleConfig
-from ..model.diffusion import DiffusionConfig, NoiseSchedule
+from ..model.diffusion import DiffusionConfig, NoiseSchedule, check as check_diffusion
 from ..model.dit import ModelConfig, RokenDiT, check as check_model
 from ..model.losses import LossConfig, check as check_loss, pretraining_loss
 from ..plan.rollout import PlanConfig
@@ -147,6 +147,7 @@ class Pretraining:
         check(spec.train)
         check_loss(spec.loss)
         check_model(spec.model)
+        check_diffusion(spec.diffusion)
         ckpt.cross_check(spec.model, spec.samples, spec.task.max_step, "config")
         self.spec, self.data, self.data_shares, self.out = spec, data, data_shares, Path(out)
         t = spec.train
