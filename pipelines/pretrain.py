@@ -130,6 +130,7 @@ def main(argv=None) -> int:
         if args.init:
             # a bad checkpoint fails here, before any write; absolute, since Ray workers run elsewhere
             args.init = str(ckpt.find(args.init).resolve())
+            ckpt.same_diffusion(args.init, cfg.diffusion)
         for d, role in [(d, "--data") for d in args.data] + [(args.val_data, "--val-data")]:
             if d:
                 check_dataset(d, role)

@@ -50,6 +50,19 @@ def test_model_config_and_divergence_errors_are_one_line(expert_dataset, tmp_pat
         assert not out.exists()
 
 
+def test_a_run_starting_from_a_checkpoint_of_another_parametrisation_is_refused(expert_dataset, tmp_path):
+    # a v-prediction model's output read as the noise would be a silent, wrong model (diffusion.prediction)
+    assert run("pretrain.py", "--data", expert_dataset, "--out", str(tmp_path / "v"), "--steps", "2", *TINY,
+               "--set", "diffusion.prediction=v").returncode == 0
+    r = run("pretrain.py", "--data", expert_dataset, "--out", str(tmp_path / "eps"), "--steps", "2", *TINY,
+            "--init", str(tmp_path / "v"))
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr[-2000:]
+    assert "diffusion.prediction: v -> eps" in r.stderr and "--set diffusion.prediction=v" in r.stderr
+    assert not (tmp_path / "eps").exists()
+    assert run("pretrain.py", "--data", expert_dataset, "--out", str(tmp_path / "v2"), "--steps", "2", *TINY,
+               "--init", str(tmp_path / "v"), "--set", "diffusion.prediction=v").returncode == 0
+
+
 def test_an_evaluation_folder_is_refused_as_training_data(tmp_path):
     ev = tmp_path / "ev"
     assert run("evaluate.py", "--robots", "2", "--episodes", "2", "--num-maps", "2", "--workers", "0",

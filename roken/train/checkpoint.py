@@ -16,7 +16,7 @@ import os
 import random
 import shutil
 import tempfile
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -177,6 +177,22 @@ def cross_check(model: ModelConfig, samples: SampleConfig, task_max_step: float 
         bad.append(f"model.canvas={model.canvas} must be a multiple of the even model.map_patch={model.map_patch}")
     if bad:
         raise CheckpointError(f"{source}: inconsistent settings: {'; '.join(bad)}")
+
+
+def same_diffusion(path: str | Path, own: DiffusionConfig) -> None:
+    """A run starting from the checkpoint at `path` (`--init`) must read its weights' output as they were trained:
+    the diffusion section (diffusion.prediction, the schedule) must be the run's; only the clip may differ."""
+    d = find(path)
+    try:
+        theirs = from_dict(DiffusionConfig, read_config(d).get("diffusion", {}), "diffusion.")
+    except ConfigError as e:
+        raise CheckpointError(f"{d / CONFIG}: {e} (written by another roken version?)") from None
+    old, new = ({k: v for k, v in asdict(c).items() if k != "clip_sample"} for c in (theirs, own))
+    if old != new:
+        bad = [k for k in old if old[k] != new[k]]
+        raise CheckpointError(f"{d}: its diffusion section differs from this run's ("
+                              + ", ".join(f"diffusion.{k}: {old[k]} -> {new[k]}" for k in bad) + "); run with "
+                              + " ".join(f"--set diffusion.{k}={old[k]}" for k in bad))
 
 
 @dataclass

@@ -221,6 +221,7 @@ class Pretraining:
             raise ckpt.CheckpointError(f"{loaded.path}: its model section differs from this run's "
                                        f"({', '.join(changed_keys(old, own, 'model.')[:4])}); "
                                        f"start from a checkpoint of the same model config")
+        ckpt.same_diffusion(loaded.path, self.spec.diffusion)
         if (loaded.path / ckpt.STATE).is_file():
             s = ckpt.load_train_state(loaded.path)
             model, ema, optimizer = s["model"], s["ema"], s["optimizer"]
