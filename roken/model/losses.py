@@ -203,7 +203,8 @@ def _sdf_term(sched, batch, loss_cfg, sample_cfg, out, x0, xk, k, fixed, gen, K,
 
 def _predicted_points(sched, loss_cfg, sample_cfg, out, x0, xk, k, fixed, start):
     """The predicted clean chunk as points in metres (BK, R, H, 2), per loss.sdf_mode, and its weight (BK, 1, 1)."""
-    x0_hat = torch.where(fixed.bool()[:, :, None, None], x0, sched.predict_x0(xk, k, sched.eps_from(out["eps"], xk, k)))
+    eps_hat = sched.eps_from(out["eps"], xk, k)  # the noise estimate, whatever the denoiser predicts
+    x0_hat = torch.where(fixed.bool()[:, :, None, None], x0, sched.predict_x0(xk, k, eps_hat))
     if loss_cfg.sdf_mode == "stopgrad" and sample_cfg.representation == "relative":
         # point h = start + (moves 0..h-1, no gradient) + move h: a point's penalty moves only its own move
         before = torch.cumsum(x0_hat.detach(), dim=2) - x0_hat.detach()
