@@ -24,6 +24,7 @@ from roken.config import load_config
 from roken.model.dit import PRESETS, preset
 from roken.train import ablation
 from roken.train.data import check_dataset
+from roken.train.loop import check_sections
 from roken.units import Unit
 
 
@@ -62,7 +63,10 @@ def main(argv=None) -> int:
         units = []
         for v in variants:
             sets = base + v["overrides"]
-            load_config(args.config, sets)  # every variant's config is checked before anything runs
+            try:  # every variant's config is checked before anything runs
+                check_sections(load_config(args.config, sets))
+            except ValueError as e:
+                raise ValueError(f"--variants {args.variants}: variant {v['name']!r}: {e}") from None
             units.append(Unit(v["name"], {"name": v["name"], "overrides": sets, "variant_overrides": v["overrides"]}))
         out = Path(args.out).resolve()
         if out.exists() and not out.is_dir():

@@ -228,6 +228,19 @@ def test_recipes_load_and_are_consistent(recipe):
     assert (cfg.samples.subteam_prob > 0) == (recipe == "four-masked.yaml")
 
 
+@pytest.mark.parametrize("variants", sorted(p.name for p in (ROOT / "configs" / "ablate").glob("*.yaml")))
+def test_ablation_files_are_valid_over_the_cpu_recipe(variants):
+    """Every variant of a shipped ablation file, over the recipe its command names, passes the checks a run makes
+    and builds its model."""
+    from roken.model.dit import RokenDiT
+    from roken.train.ablation import load_variants
+    from roken.train.loop import check_sections
+    for v in load_variants(ROOT / "configs" / "ablate" / variants):
+        cfg = load_config(ROOT / "configs" / "pretrain" / "cpu.yaml", v["overrides"])
+        check_sections(cfg)
+        RokenDiT(cfg.model)
+
+
 @pytest.mark.parametrize("name", ["roken-small-mixed", "roken-cpu-four", "roken-cpu-four-masked"])
 def test_the_shipped_model_loads_and_plans(name):
     shipped = ROOT / "models" / name

@@ -139,16 +139,22 @@ class LocalBackend:
             ckpt.prune(self.run_dir, keep)
 
 
+def check_sections(cfg) -> None:
+    """Every section pretraining reads (a config or a PretrainSpec), alone and against each other: what a run
+    checks before it writes anything, and what `ablate.py` checks for every variant before the first trains."""
+    check(cfg.train)
+    check_loss(cfg.loss)
+    check_model(cfg.model)
+    check_diffusion(cfg.diffusion)
+    ckpt.cross_check(cfg.model, cfg.samples, cfg.task.max_step, "config")
+
+
 class Pretraining:
     def __init__(self, spec: PretrainSpec, data: str | list[str], out: str | Path, val_data: str | None = None,
                  backend=None, log_stream=None, data_shares: list[float] | None = None, init: str | None = None):
         """`data`: one dataset, or several mixed by `data_shares` (DAgger). `init`: a checkpoint a new run starts
         from (weights, EMA and, where it has one, the optimizer state; its step and schedule are not taken)."""
-        check(spec.train)
-        check_loss(spec.loss)
-        check_model(spec.model)
-        check_diffusion(spec.diffusion)
-        ckpt.cross_check(spec.model, spec.samples, spec.task.max_step, "config")
+        check_sections(spec)
         self.spec, self.data, self.data_shares, self.out = spec, data, data_shares, Path(out)
         t = spec.train
         self.device = getattr(backend, "device", None) or pick_device(t.device)
