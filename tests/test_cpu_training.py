@@ -168,7 +168,6 @@ def test_ablation_writes_both_files_and_resume_skips_finished(expert_dataset, tm
     assert (tmp_path / "abl" / "variants" / "a" / "result.json").read_text() == before
 
 
-
 @pytest.mark.parametrize("bad, message", [("diffusion.prediction=q", "diffusion.prediction must be one of"),
                                           ("model.heads=5", "not divisible by model.heads=5"),
                                           ("train.schedule=step", "train.schedule must be")])
@@ -181,6 +180,7 @@ def test_ablation_refuses_a_bad_variant_before_any_trains(expert_dataset, tmp_pa
                        capture_output=True, text=True, timeout=300)
     assert r.returncode != 0 and "variant 'late'" in r.stderr and message in r.stderr, r.stderr[-2000:]
     assert not (tmp_path / "abl").exists()
+
 
 def test_separation_term_pushes_close_generated_robots_apart_and_spares_given_ones(expert_dataset):
     """loss.sep on a hand-made chunk: a close pair is penalised and pushed apart, given robots never move."""
