@@ -24,7 +24,7 @@ import torch
 from roken.config import load_config
 from roken.dagger.relabel import first_violation
 from roken.data.store import read_run
-from roken.eval.folder import rollout_config
+from roken.plan.controller import rollout_config
 from roken.eval.metrics import COMPACT_HEAD, compact_cells, summarize
 from roken.plan import RokenPlanner, RokenRollout
 from roken.world.metrics import episode_metrics

@@ -6,6 +6,7 @@
     python benchmarks/plan.py --rollout-only --checkpoint models/roken-small-mixed
     python benchmarks/plan.py --latency-only --threads 1 --presets small      # guided vs unguided
     python benchmarks/plan.py --verify-only --threads 1                       # verified selection's cost
+    python benchmarks/plan.py --controller-only --threads 1                   # the deployable planner per re-plan
 
 Latency: one plan = the condition (roken.data.condition), map encoding and DDIM-10 for all robots, 1 or 32
 candidates in one batch, through RokenPlanner.sample (random weights: the cost does not depend on them);
@@ -17,6 +18,10 @@ evaluation tasks with continuous batching (plan.batch_size episodes per model ca
 Verification: verified selection's check of G candidates (4 robots, H = 16) on the known map, at the plan's
 points and, with plan.verify_steps, at every simulator step of the executed moves (rollout.executed_points); G = 9
 is G = 8 with the last plan carried as one more candidate (plan.keep_previous).
+Controller: what a robot waits for with the deployable planner for user code (roken.plan.RokenController, the
+shipped model with configs/deploy.yaml): the start of a task (the known map's free-space fields, once per task)
+and each re-plan (guided sampling of G candidates, verification at every executed step, geodesic ranking, the
+carried plan), one team at a time on `eval` tasks driven by Team.step; N = 10 plans in clusters of 4.
 """
 from __future__ import annotations
 
@@ -103,6 +108,30 @@ def throughput(checkpoint: str, episodes: int, batch: int, device: str) -> float
     return len(tasks) / dt
 
 
+def controller_latency(checkpoint: str, config: str, tasks_per_n: int, device: str) -> None:
+    from roken.plan import RokenController
+
+    print(f"deployable planner ({checkpoint}, {config}), one team at a time, {tasks_per_n} `eval` tasks per row:")
+    print(f"{'robots':>7}{'clusters':>10}{'start (ms)':>12}{'re-plans':>10}{'median ms':>11}{'p90 ms':>8}{'max ms':>8}")
+    for n, cluster in ((4, 0), (10, 4)):
+        ctl = RokenController.load(checkpoint, config, overrides=[f"plan.cluster_size={cluster}"], device=device)
+        cfg = load_config(config, [f"eval.episodes={tasks_per_n}"])
+        maps = {m.map_id: m for m in (generate_map(cfg.map, "eval", i) for i in range(tasks_per_n))}
+        starts, times = [], []
+        for _, task in make_tasks(cfg, list(maps.values()), n)[0]:
+            t0 = time.perf_counter()
+            team = ctl.start(maps[task.map_id].occupancy, task.starts, task.leader, task.goal, seed=task.seed)
+            starts.append(time.perf_counter() - t0)
+            while not team.finished:
+                t0 = time.perf_counter()
+                team.replan()
+                times.append(time.perf_counter() - t0)
+                team.step()
+        ms = np.array(times) * 1e3
+        print(f"{n:>7}{cluster or '-':>10}{statistics.median(starts) * 1e3:>12.0f}{len(ms):>10}{np.median(ms):>11.0f}"
+              f"{np.percentile(ms, 90):>8.0f}{ms.max():>8.0f}")
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--presets", default="small,paper")
@@ -115,10 +144,16 @@ def main(argv=None):
     p.add_argument("--rollout-only", action="store_true")
     p.add_argument("--latency-only", action="store_true")
     p.add_argument("--verify-only", action="store_true", help="only the cost of verified selection")
+    p.add_argument("--controller-only", action="store_true", help="only the deployable planner's per-re-plan latency")
+    p.add_argument("--deploy-checkpoint", default="models/roken-cpu-four-dagger")
+    p.add_argument("--deploy-config", default="configs/deploy.yaml")
+    p.add_argument("--deploy-tasks", type=int, default=10, help="tasks per team size for --controller-only")
     a = p.parse_args(argv)
     if a.threads:
         torch.set_num_threads(a.threads)
     print(f"device {a.device}, dtype {a.dtype}, torch threads {torch.get_num_threads()}")
+    if a.controller_only:
+        return controller_latency(a.deploy_checkpoint, a.deploy_config, a.deploy_tasks, a.device)
     rng = np.random.default_rng(0)
     if not a.rollout_only:
         print(f"{'verified selection, 4 robots':<30}{'candidates':>11}{'ms / re-plan':>14}")

@@ -27,7 +27,7 @@ import torch
 
 from roken.config import load_config
 from roken.dagger.relabel import constraint_steps, first_violation
-from roken.eval.folder import rollout_config
+from roken.plan.controller import rollout_config
 from roken.eval.harness import load_maps, make_tasks
 from roken.eval.metrics import COMPACT_HEAD, compact_cells, summarize
 from roken.expert.laplacian import LaplacianExpert

@@ -136,7 +136,8 @@ def test_pipeline_bad_inputs_fail_before_writing(expert_dataset, tmp_path):
     assert r.returncode == 2 and "--data-shares 1" in r.stderr and not (tmp_path / "o4").exists()
     r = run_pipeline("--data", f"{expert_dataset},{expert_dataset}", "--data-shares", "0.7,0.3", "--out",
                      str(tmp_path / "mix"), "--workers", "0", "--steps", "1", "--preset", "tiny", "--set",
-                     "train.batch_size=4", "--set", "train.loader_workers=0", "--set", "train.eval_every=0")
+                     "train.batch_size=4", "--set", "train.loader_workers=0", "--set", "train.eval_every=0",
+                     "--set", "train.closed_loop_every=0")
     assert r.returncode == 0, r.stderr  # ... and mixed as given
     meta = ckpt.read_config(ckpt.list_checkpoints(tmp_path / "mix")[-1])
     assert len(meta["dataset"]["datasets"]) == 2 and meta["data_shares"] == [0.7, 0.3]
@@ -149,7 +150,7 @@ def test_pipeline_bad_inputs_fail_before_writing(expert_dataset, tmp_path):
     # An existing run made with another config is refused with the keys; its checkpoints are untouched.
     args = ["--data", expert_dataset, "--out", str(tmp_path / "run"), "--workers", "0", "--steps", "2",
             "--preset", "tiny", "--set", "train.batch_size=4", "--set", "train.loader_workers=0",
-            "--set", "train.eval_every=0"]
+            "--set", "train.eval_every=0", "--set", "train.closed_loop_every=0"]  # (its own tests: test_cpu_training)
     assert run_pipeline(*args).returncode == 0
     before = (tmp_path / "run" / "checkpoint-0000002" / "model.safetensors").read_bytes()
     r = run_pipeline(*args, "--set", "loss.wp=0.5")

@@ -10,7 +10,7 @@ import sys
 from ..configtools import LATER_FIELDS, to_dict, with_later_fields, without_later_fields
 from ..data import fs
 from ..data.store import StoreError, file_metadata, read_episodes, read_json
-from ..plan.rollout import PlanConfig
+from ..plan.controller import rollout_config
 
 # plan fields that do not change a Roken episode (where and how fast it runs)
 PLAN_RUNTIME_KEYS = ("device", "batch_size", "record_plans")
@@ -80,16 +80,6 @@ def _fingerprint_dict(cfg, planner: str, model_id: str) -> dict:
         d["plan"] = rollout_config(cfg.plan, planner).__dict__ | {"checkpoint": model_id}
         keys = keys + ("plan",)
     return {k: v for k, v in d.items() if k in keys}
-
-
-def rollout_config(pc: PlanConfig, planner: str) -> PlanConfig:
-    """The plan section for one row: plain `roken` uses one candidate, `roken+X` selects with X."""
-    from dataclasses import replace
-
-    parts = planner.split("+")[1:]
-    guide = "guided" in parts
-    select = next((p for p in parts if p != "guided"), "none")
-    return replace(pc, select=select, guide=guide, candidates=pc.candidates if select != "none" else 1)
 
 
 def episode_file(out: str, planner: str, n: int) -> str:

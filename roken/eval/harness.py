@@ -37,9 +37,10 @@ from ..world.grid import GridMap
 from ..world.loaders import MapError, find_map_files, load_map_file
 from ..world.maps import SPLITS, MapConfig, generate_map, split_size
 from ..world.tasks import TaskConfig, TaskError, sample_task
+from ..plan.controller import rollout_config
 from ..plan.rollout import PlanConfig
 from .folder import (episode_file, fingerprint, fingerprints, refuse_other_config, reuse, reuse_unit,  # noqa: F401
-                     rollout_config, unit_file)
+                     unit_file)
 from .metrics import format_table, summarize
 
 PLANNERS = ("laplacian", "sgg", "gnn", "roken", "roken+safe", "roken+geodesic", "roken+guided",

@@ -1,6 +1,6 @@
 """RokenPlanner: a trained checkpoint as a planner (paper: single robot, team, and conditional generation).
 
-    planner = RokenPlanner.load("models/roken-small-mixed")            # a checkpoint dir or a run folder
+    planner = RokenPlanner.load("models/roken-cpu-four-dagger")        # a checkpoint dir or a run folder
     plan = planner.plan(occupancy, positions, leader=0, goal=(120, 30))   # (n, 16, 2) metres
     plan = planner.plan(occ, pos, 0, goal, fixed={2: path2})             # robot 2 follows path2 (16, 2) exactly
     cands = planner.plan(occ, pos, 0, goal, candidates=32)               # (32, n, 16, 2) from one batched call
@@ -9,11 +9,14 @@ A plan is `horizon` (16) chunk moves, the positions every `interval` (4) simulat
 of the occupancy given (1 cell = 1 m). A map that is not the model's canvas is fitted the way the map loaders
 fit it (max-pooled down so obstacles never vanish, or scaled up by an integer, then centred) and the plan is
 mapped back. `sample` is the batched core the closed-loop rollout and GRPO use: many prompts (conditions from
-`roken.data.condition.build_condition`) x G candidates in one model call per denoising step.
+`roken.data.condition.build_condition`) x G candidates in one model call per denoising step. This is the
+paper's planner (one sample, no shield); the deployable one (guidance, verified selection, the carried plan, clusters)
+one re-plan at a time for user code is `roken.plan.controller.RokenController`.
 """
 from __future__ import annotations
 
 from contextlib import nullcontext
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +32,38 @@ from ..world.loaders import fit_to_canvas
 
 DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
 SAMPLERS = ("ddim", "ddpm")
+
+
+@dataclass
+class CanvasFit:
+    """A user's map fitted to the model's canvas the way the map loaders fit it (max-pooled down by an integer so
+    obstacles never vanish, or scaled up by one, then centred), and positions mapped between the two frames."""
+    occupancy: np.ndarray  # (S, S) uint8, the canvas the model and the closed loop see
+    seen: np.ndarray | None  # (S, S) bool, the sensed cells on the canvas (None: the whole map is known)
+    scale: float  # canvas metres per map metre
+    offset: np.ndarray  # (2,) (x, y) of the map's corner on the canvas
+
+    @classmethod
+    def of(cls, occupancy: np.ndarray, canvas: int, seen: np.ndarray | None = None) -> "CanvasFit":
+        occ = np.asarray(occupancy)
+        if occ.shape == (canvas, canvas):
+            return cls(occ, seen, 1.0, np.zeros(2))
+        fitted, info = fit_to_canvas((occ != 0).astype(np.uint8), canvas, 4)
+        scale = info["scale"]
+        if scale < 1:  # max-pooled by an integer factor f (the last block padded with obstacle)
+            f = int(round(1 / scale))
+            h, w = -(-occ.shape[0] // f), -(-occ.shape[1] // f)
+        else:
+            h, w = occ.shape[0] * int(scale), occ.shape[1] * int(scale)
+        if seen is not None:
+            seen = fit_to_canvas((~np.asarray(seen, bool)).astype(np.uint8), canvas, 4)[0] == 0
+        return cls(fitted, seen, scale, np.array([(canvas - w) // 2, (canvas - h) // 2], dtype=np.float64))
+
+    def to_canvas(self, p) -> np.ndarray:
+        return np.asarray(p, np.float64) * self.scale + self.offset
+
+    def from_canvas(self, p) -> np.ndarray:
+        return (np.asarray(p) - self.offset) / self.scale
 
 
 class RokenPlanner:
@@ -144,21 +179,9 @@ class RokenPlanner:
         n, H, S = len(pos), self.cfg.horizon, self.cfg.canvas
         if n > self.max_robots:
             raise ValueError(f"{n} robots, but this model has {self.max_robots} robot tokens (samples.max_robots); "
-                             f"plan larger teams with clustered rollout (roken.plan.rollout, cluster_size=4)")
-        scale, offset = 1.0, np.zeros(2)
-        if occ.shape != (S, S):
-            fitted, info = fit_to_canvas((occ != 0).astype(np.uint8), S, 4)
-            scale = info["scale"]
-            if scale < 1:  # max-pooled by an integer factor f (the last block padded with obstacle)
-                f = int(round(1 / scale))
-                h, w = -(-occ.shape[0] // f), -(-occ.shape[1] // f)
-            else:
-                h, w = occ.shape[0] * int(scale), occ.shape[1] * int(scale)
-            offset = np.array([(S - w) // 2, (S - h) // 2], dtype=np.float64)  # (x, y) of the map's corner
-            if seen is not None:
-                seen = fit_to_canvas((~np.asarray(seen, bool)).astype(np.uint8), S, 4)[0] == 0
-            occ = fitted
-        to_canvas = lambda p: np.asarray(p, np.float64) * scale + offset  # noqa: E731
+                             f"plan larger teams with clustered rollout (RokenController, plan.cluster_size=4)")
+        fit = CanvasFit.of(occ, S, seen)
+        occ, seen, to_canvas = fit.occupancy, fit.seen, fit.to_canvas
         fixed_mask, given = np.zeros(n, bool), np.zeros((n, H, 2), np.float32)
         for r, path in (fixed or {}).items():
             path = np.asarray(path, dtype=np.float64)
@@ -170,7 +193,7 @@ class RokenPlanner:
                                previous=None if previous is None else to_canvas(np.reshape(previous, (n, 2))))
         gen = torch.Generator().manual_seed(int(seed)) if seed is not None else None
         out = self.sample([cond], candidates, sampler, steps, [gen] if gen is not None else None)[0, :, :n]
-        out = (out - offset) / scale
+        out = fit.from_canvas(out)
         for r, path in (fixed or {}).items():
             out[:, r] = path
         return out if candidates > 1 else out[0]

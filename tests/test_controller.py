@@ -1,0 +1,104 @@
+"""RokenController: the deployable planner one re-plan at a time for user code."""
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from roken.config import load_config
+from roken.data.samples import SampleConfig
+from roken.eval.harness import make_tasks
+from roken.model.diffusion import DiffusionConfig, NoiseSchedule
+from roken.model.dit import RokenDiT, preset
+from roken.plan import PlanConfig, RokenController, RokenPlanner, RokenRollout
+from roken.plan.controller import rollout_config
+from roken.world.maps import generate_map
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    """A random tiny model (it moves robots anywhere): enough to compare two drivers of the same planner."""
+    torch.manual_seed(0)
+    model = RokenDiT(preset("tiny"))
+    for p in model.final.parameters():  # AdaLN-Zero starts at eps = 0; make the output non-trivial
+        torch.nn.init.normal_(p, std=0.5)
+    return RokenPlanner(model, NoiseSchedule(DiffusionConfig(num_steps=20)), SampleConfig(), "cpu")
+
+
+def test_a_team_driven_by_the_controller_replays_the_evaluation_episode(tiny):
+    """The controller runs the harness's own re-plan: with the deployable settings (guidance, geodesic ranking of
+    verified candidates, every executed step checked, the carried plan) and the task's seed, replan() + step()
+    give the very episode the closed-loop rollout records, step for step, holds included."""
+    cfg = load_config(ROOT / "configs/deploy.yaml", ["eval.episodes=2", "expert.step_limit_factor=0.1",
+                                                     "expert.step_limit_extra=40"])  # ~8 re-plans an episode
+    maps = [generate_map(cfg.map, "eval", i) for i in range(2)]
+    tasks, _ = make_tasks(cfg, maps, 3)
+    by_id = {m.map_id: m for m in maps}
+    pc = replace(rollout_config(cfg.plan, "roken+guided+geodesic"), device="cpu", guide_final_iters=5)
+    ro = RokenRollout(tiny, replace(pc, batch_size=1), cfg.task, cfg.expert)
+    ref = {i: (p, info) for i, p, info in ro.run([t for _, t in tasks], by_id)}
+    ctl = RokenController(tiny, pc, cfg.task, cfg.expert)
+    for i, (_, task) in enumerate(tasks):
+        team = ctl.start(by_id[task.map_id].occupancy, task.starts, task.leader, task.goal, seed=task.seed)
+        assert np.allclose(team.positions, task.starts)
+        while not team.finished:
+            plan = team.replan()
+            assert plan.shape == (3, 16, 2)
+            team.step()
+        assert np.array_equal(team.history.astype(np.float32), ref[i][0])
+        assert team.holds == ref[i][1]["holds"] and team.reached == ref[i][1]["reached"]
+
+
+def test_a_map_off_the_canvas_plans_and_updates_in_its_own_metres(tiny):
+    """A 35 x 50 m map is scaled up 2x onto the 140 m canvas: plans, positions and the history come back in the
+    map's own metres, and update() accepts where the robots are now or every simulator step since."""
+    ctl = RokenController(tiny, PlanConfig(device="cpu", select="safe", candidates=4), load_config().task)
+    occ = np.zeros((35, 50), np.uint8)
+    occ[20:24, 30:34] = 1
+    pos = np.array([[6.0, 6.0], [9.0, 6.0]])
+    team = ctl.start(occ, pos, leader=0, goal=(44, 30), seed=3)
+    plan = team.replan()
+    assert plan.shape == (2, 16, 2)
+    if team.held:  # no clean candidate: the plan is the safety stop, in the map's metres
+        assert np.allclose(plan, pos[:, None])
+    team.update(pos + [0.5, 0.25])  # only where they are now: straight lines over the 8 executed steps
+    assert team.history.shape == (1 + 8, 2, 2) and np.allclose(team.positions, pos + [0.5, 0.25])
+    assert np.allclose(team.history[4], pos + [0.25, 0.125])
+    steps = pos + np.linspace(0.6, 1.0, 3)[:, None, None]
+    team.update(steps)  # every simulator step since
+    assert team.history.shape == (1 + 8 + 3, 2, 2) and np.allclose(team.history[-3:], steps)
+    again = ctl.start(occ, pos, 0, (44, 30), seed=3).replan()
+    assert np.array_equal(again, plan), "the same seed and inputs give the same plan"
+
+
+def test_the_controller_refuses_bad_inputs_naming_them(tiny):
+    ctl = RokenController(tiny, PlanConfig(device="cpu"), load_config().task)
+    occ = np.zeros((140, 140), np.uint8)
+    pos = np.array([[40.0, 40.0], [44.0, 40.0]])
+    with pytest.raises(ValueError, match="leader 2"):
+        ctl.start(occ, pos, 2, (100, 100))
+    with pytest.raises(ValueError, match="goal: outside the map"):
+        ctl.start(occ, pos, 0, (150, 100))
+    with pytest.raises(ValueError, match=r"positions: \(n, 2\)"):
+        ctl.start(occ, pos.ravel(), 0, (100, 100))
+    with pytest.raises(ValueError, match="cluster-size"):
+        ctl.start(occ, np.random.default_rng(0).random((11, 2)) * 80 + 20, 0, (100, 100))
+    team = ctl.start(occ, pos, 0, (100, 100))
+    with pytest.raises(RuntimeError, match="replan"):
+        team.step()
+    with pytest.raises(ValueError, match=r"\(k, 2, 2\)"):
+        team.update(np.zeros((3, 2)))
+
+
+def test_load_takes_the_row_and_settings_of_a_config():
+    ctl = RokenController.load(ROOT / "models/roken-cpu-four-dagger", ROOT / "configs/deploy.yaml", device="cpu")
+    pc = ctl.plan
+    assert (pc.guide, pc.select, pc.candidates, pc.verify_steps, pc.keep_previous, pc.geo_inflate) == \
+        (True, "geodesic", 8, True, True, 3.0)
+    plain = RokenController.load(ROOT / "models/roken-cpu-four-dagger", row="roken", device="cpu")
+    assert (plain.plan.guide, plain.plan.select, plain.plan.candidates) == (False, "none", 1)
+    with pytest.raises(ValueError, match="a Roken row"):
+        RokenController.load(ROOT / "models/roken-cpu-four-dagger", row="laplacian", device="cpu")
