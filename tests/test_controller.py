@@ -53,25 +53,35 @@ def test_a_team_driven_by_the_controller_replays_the_evaluation_episode(tiny):
 
 
 def test_a_map_off_the_canvas_plans_and_updates_in_its_own_metres(tiny):
-    """A 35 x 50 m map is scaled up 2x onto the 140 m canvas: plans, positions and the history come back in the
-    map's own metres, and update() accepts where the robots are now or every simulator step since."""
+    """A 35 x 50 m map keeps its metres (centred on the 140 m canvas; with rescale=True it is scaled 2x as the map
+    loaders fit maps): plans, positions and the history come back in the map's own metres, update() accepts where
+    the robots are now or every simulator step since, and a simulated step is at most 0.5 m of the map."""
     ctl = RokenController(tiny, PlanConfig(device="cpu", select="safe", candidates=4), load_config().task)
     occ = np.zeros((35, 50), np.uint8)
     occ[20:24, 30:34] = 1
     pos = np.array([[6.0, 6.0], [9.0, 6.0]])
-    team = ctl.start(occ, pos, leader=0, goal=(44, 30), seed=3)
-    plan = team.replan()
-    assert plan.shape == (2, 16, 2)
-    if team.held:  # no clean candidate: the plan is the safety stop, in the map's metres
-        assert np.allclose(plan, pos[:, None])
+    for rescale, max_step in ((False, 0.5), (True, 0.25)):
+        team = ctl.start(occ, pos, leader=0, goal=(44, 30), seed=3, rescale=rescale)
+        assert team.fit.scale == (2.0 if rescale else 1.0)
+        plan = team.replan()
+        assert plan.shape == (2, 16, 2)
+        if team.held:  # no clean candidate: the plan is the safety stop, in the map's metres
+            assert np.allclose(plan, pos[:, None])
+        team.step()
+        assert np.linalg.norm(np.diff(team.history, axis=0), axis=-1).max() <= max_step + 1e-4
+        again = ctl.start(occ, pos, 0, (44, 30), seed=3, rescale=rescale).replan()
+        assert np.array_equal(again, plan), "the same seed and inputs give the same plan"
+    team = ctl.start(occ, pos, 0, (44, 30))
     team.update(pos + [0.5, 0.25])  # only where they are now: straight lines over the 8 executed steps
     assert team.history.shape == (1 + 8, 2, 2) and np.allclose(team.positions, pos + [0.5, 0.25])
     assert np.allclose(team.history[4], pos + [0.25, 0.125])
     steps = pos + np.linspace(0.6, 1.0, 3)[:, None, None]
     team.update(steps)  # every simulator step since
     assert team.history.shape == (1 + 8 + 3, 2, 2) and np.allclose(team.history[-3:], steps)
-    again = ctl.start(occ, pos, 0, (44, 30), seed=3).replan()
-    assert np.array_equal(again, plan), "the same seed and inputs give the same plan"
+    with pytest.raises(ValueError, match="150 x 150 m map is larger than the model's 140 x 140 m canvas"):
+        ctl.start(np.zeros((150, 150)), pos, 0, (44, 30))
+    far = np.array([[6.0, 6.0], [12.0, 6.0]])  # 3 m on the half-scale canvas: spacing holds there, not in the map
+    assert ctl.start(np.zeros((150, 150)), far, 0, (44, 30), rescale=True).fit.scale == 0.5
 
 
 def test_the_controller_refuses_bad_inputs_naming_them(tiny):
@@ -86,6 +96,14 @@ def test_the_controller_refuses_bad_inputs_naming_them(tiny):
         ctl.start(occ, pos.ravel(), 0, (100, 100))
     with pytest.raises(ValueError, match="cluster-size"):
         ctl.start(occ, np.random.default_rng(0).random((11, 2)) * 80 + 20, 0, (100, 100))
+    blocked = occ.copy()
+    blocked[39:42, 43:46] = 1  # robot 1 stands in a block: every verified candidate would fail at its start
+    with pytest.raises(ValueError, match="start refused: robot 1 is .* from an obstacle .*d_obs_min=1 m"):
+        ctl.start(blocked, pos, 0, (100, 100))
+    with pytest.raises(ValueError, match="start refused: two robots start 1.00 m apart"):
+        ctl.start(occ, [[40, 40], [41, 40]], 0, (100, 100))
+    with pytest.raises(ValueError, match="start refused: the goal is in an obstacle cell"):
+        ctl.start(blocked, [[40, 60], [44, 60]], 0, (44, 40.5))
     team = ctl.start(occ, pos, 0, (100, 100))
     with pytest.raises(RuntimeError, match="replan"):
         team.step()

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..expert.laplacian import ExpertConfig
 from ..world.grid import GridMap
-from ..world.tasks import Task, TaskConfig
+from ..world.tasks import Task, TaskConfig, check_start
 from .planner import CanvasFit, RokenPlanner
 from .rollout import PlanConfig, RokenRollout, _Slot, check
 
@@ -64,17 +64,21 @@ class RokenController:
         planner = RokenPlanner.load(checkpoint, pc.device, pc.dtype, pc.which, cfg.task.max_step)
         return cls(planner, rollout_config(pc, row), cfg.task, cfg.expert)
 
-    def start(self, occupancy: np.ndarray, positions: np.ndarray, leader: int, goal, seed: int = 0) -> "Team":
-        """A team at its start: occupancy (h, w), 1 = obstacle, 1 cell = 1 m (a map that is not the model's canvas
-        is fitted to it as the map loaders fit maps); positions (n, 2) metres (x along columns); leader: the
-        robot given the goal; seed: the noise stream (the same seed and inputs give the same plans)."""
-        return Team(self, occupancy, positions, leader, goal, seed)
+    def start(self, occupancy: np.ndarray, positions: np.ndarray, leader: int, goal, seed: int = 0,
+              rescale: bool = False) -> "Team":
+        """A team at its start: occupancy (h, w), 1 = obstacle, 1 cell = 1 m, at most the model's canvas (140 m;
+        a smaller map is centred on it, walled); positions (n, 2) metres (x along columns); leader: the robot
+        given the goal; seed: the noise stream (the same seed and inputs give the same plans). rescale=True fits
+        any map to the canvas as the map loaders and `RokenPlanner.plan` do (scaled by an integer, so clearances,
+        spacing and speeds hold on the canvas, not in the map's metres)."""
+        return Team(self, occupancy, positions, leader, goal, seed, rescale)
 
 
 class Team:
     """One team's task under a RokenController: what it knows, the plan it carries, its record."""
 
-    def __init__(self, ctl: RokenController, occupancy, positions, leader: int, goal, seed: int = 0):
+    def __init__(self, ctl: RokenController, occupancy, positions, leader: int, goal, seed: int = 0,
+                 rescale: bool = False):
         occ = np.asarray(occupancy)
         pos = np.asarray(positions, np.float64)
         if occ.ndim != 2 or not occ.size:
@@ -85,13 +89,19 @@ class Team:
             raise ValueError(f"leader {leader}: the index of the robot given the goal, 0..{len(pos) - 1}")
         check(ctl.plan, ctl.planner, len(pos))  # a team larger than the model needs plan.cluster_size
         self.ctl, S = ctl, ctl.planner.cfg.canvas
-        self.fit = CanvasFit.of(occ, S)
+        self.fit = CanvasFit.of(occ, S, rescale=rescale)
         q, g = self.fit.to_canvas(pos), self.fit.to_canvas(np.reshape(goal, 2))
         for name, p in (("positions", q), ("goal", g[None])):
             if (p < 0).any() or (p >= S).any():
                 raise ValueError(f"{name}: outside the map ({occ.shape[1]} x {occ.shape[0]} m, x along columns)")
-        self._slot = _Slot(0, Task("user", q, g, int(leader), int(seed)), GridMap("user", self.fit.occupancy, "user"),
-                           ctl.rollout)
+        gm = GridMap("user", self.fit.occupancy, "user")
+        why = check_start(gm, q, ctl.task)  # else every verified candidate fails at its first point: the team holds
+        if why or gm.occupancy[int(g[1]), int(g[0])]:
+            t = ctl.task
+            raise ValueError(f"start refused: {why or 'the goal is in an obstacle cell'} (robots must start at least "
+                             f"d_obs_min={t.d_obs_min:g} m from obstacles and d_coll_min={t.d_coll_min:g} m apart, "
+                             f"connected within R={t.comm_radius:g} m, and the goal must be free)")
+        self._slot = _Slot(0, Task("user", q, g, int(leader), int(seed)), gm, ctl.rollout)
         self._plan: np.ndarray | None = None  # the last plan, on the canvas
         self.held = False  # the last re-plan found no clean candidate: the re-planned robots stand (a safety stop)
 

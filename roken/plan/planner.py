@@ -29,6 +29,7 @@ from ..model.diffusion import COND_KEYS, DiffusionConfig, NoiseSchedule, ddim_sa
 from ..model.dit import ModelConfig, RokenDiT
 from ..devices import pick_device
 from ..world.loaders import fit_to_canvas
+from ..world.maps import place_on_canvas
 
 DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
 SAMPLERS = ("ddim", "ddpm")
@@ -44,10 +45,24 @@ class CanvasFit:
     offset: np.ndarray  # (2,) (x, y) of the map's corner on the canvas
 
     @classmethod
-    def of(cls, occupancy: np.ndarray, canvas: int, seen: np.ndarray | None = None) -> "CanvasFit":
+    def of(cls, occupancy: np.ndarray, canvas: int, seen: np.ndarray | None = None,
+           rescale: bool = True) -> "CanvasFit":
+        """rescale=False keeps 1 cell = 1 m (clearances, spacing and speeds in the map's own metres): the map is
+        only centred on the canvas, and one larger than the canvas is refused."""
         occ = np.asarray(occupancy)
         if occ.shape == (canvas, canvas):
             return cls(occ, seen, 1.0, np.zeros(2))
+        if not rescale:
+            h, w = occ.shape
+            if max(h, w) > canvas:
+                raise ValueError(f"occupancy: a {h} x {w} m map is larger than the model's {canvas} x {canvas} m canvas; "
+                                 f"pass the window around the team (its robots and goal inside it, in its coordinates), "
+                                 f"or rescale=True to fit the map to the canvas as the map loaders do (every distance "
+                                 f"on the canvas then shrinks by {int(np.ceil(max(h, w) / canvas))})")
+            off = np.array([(canvas - w) // 2, (canvas - h) // 2], dtype=np.float64)
+            if seen is not None:
+                seen = place_on_canvas((~np.asarray(seen, bool)).astype(np.uint8), canvas) == 0
+            return cls(place_on_canvas((occ != 0).astype(np.uint8), canvas), seen, 1.0, off)
         fitted, info = fit_to_canvas((occ != 0).astype(np.uint8), canvas, 4)
         scale = info["scale"]
         if scale < 1:  # max-pooled by an integer factor f (the last block padded with obstacle)

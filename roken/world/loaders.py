@@ -30,8 +30,9 @@ class MapError(ValueError):
         self.reason = reason
 
 
-def read_movingai(path: Path) -> np.ndarray:
-    lines = path.read_text().splitlines()
+def read_movingai(path: str | Path) -> np.ndarray:
+    """A MovingAI .map file as an occupancy grid (h, w), 1 = obstacle ('.', 'G', 'S' free; '@', 'O', 'T', 'W' not)."""
+    lines = Path(path).read_text().splitlines()
     header = {}
     i = 0
     while i < len(lines) and lines[i].strip().lower() != "map":
