@@ -1,11 +1,12 @@
 """The main job in one command, on embedded defaults: generate a small dataset, pretrain briefly, evaluate
-the shipped model and the one just trained beside the expert on the same tasks, and write a short report.
+the shipped model (the paper's planner and the deployable one, configs/deploy.yaml) and the one just trained
+beside the expert on the same tasks, and write a short report.
 
     python pipelines/quickstart.py --out runs/quickstart            # a private Ray cluster on this machine
     roken quickstart --out runs/quickstart                          # the same
     python pipelines/quickstart.py --out runs/qs --workers 0        # everything in this process, no Ray
 
-About 10 minutes on 2 cores. Every stage is an ordinary pipeline run (generate.py, pretrain.py, evaluate.py)
+About 4 minutes on 2 cores. Every stage is an ordinary pipeline run (generate.py, pretrain.py, evaluate.py)
 with its progress shown; re-running the command resumes or reuses what is done. OUT/report.md holds the
 tables and links the figures (OUT/rows.png, an episode PNG and GIF).
 """
@@ -19,7 +20,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-SHIPPED = ROOT / "models" / "roken-cpu-four"  # the CPU recipe's 4-robot model (README "Training on a CPU")
+SHIPPED = ROOT / "models" / "roken-cpu-four-dagger"  # the CPU recipe + DAgger, 4 robots (README "The shipped models")
+DEPLOY = ROOT / "configs" / "deploy.yaml"  # the deployable planner's settings (README "Planning with Roken")
+ROW = "roken+guided+geodesic"  # its row: guided sampling, verified candidates ranked by free-space progress
 
 
 def stage(title: str, script: str, args: list[str], where: list[str]) -> float:
@@ -97,9 +100,10 @@ def main(argv=None) -> int:
                                           "--batch-size", "16", "--set", "train.eval_every=100",
                                           "--set", "train.checkpoint_every=100", "--set", "train.val_prompts=8"],
                           where if a.workers == 0 else ["--local", "--workers", "1"])
-    common = ["--robots", "4", "--episodes", str(a.episodes), "--maps", "eval", "--candidates", "8"]
-    t["evaluate shipped"] = stage("3/4 the shipped model beside the expert (same tasks)", "evaluate.py",
-                                  ["--planner", "laplacian,roken,roken+guided+safe", "--checkpoint", str(SHIPPED),
+    common = ["--robots", "4", "--episodes", str(a.episodes), "--maps", "eval", "--config", str(DEPLOY)]
+    t["evaluate shipped"] = stage("3/4 the shipped model beside the expert (same tasks): the paper's planner and the "
+                                  "deployable one", "evaluate.py",
+                                  ["--planner", f"laplacian,roken,{ROW}", "--checkpoint", str(SHIPPED),
                                    "--out", str(out / "eval-shipped")] + common, where)
     t["evaluate brief"] = stage("4/4 the model just trained (same tasks)", "evaluate.py",
                                 ["--planner", "roken", "--checkpoint", str(out / "pretrain"),
@@ -107,18 +111,20 @@ def main(argv=None) -> int:
     shipped = json.loads((out / "eval-shipped" / "metrics.json").read_text())["planners"]
     brief = json.loads((out / "eval-brief" / "metrics.json").read_text())["planners"]["roken"]
     rows = [("expert (laplacian)", shipped["laplacian"]), ("roken: shipped", shipped["roken"]),
-            ("roken+guided+safe: shipped", shipped["roken+guided+safe"]), (f"roken: brief {a.steps} steps", brief)]
+            (f"{ROW} (configs/deploy.yaml): shipped", shipped[ROW]), (f"roken: brief {a.steps} steps", brief)]
     bar_chart(rows, out / "rows.png")
     figs = []
     for tool, name in (("plot", "episode.png"), ("animate", "episode.gif")):
         r = subprocess.run([sys.executable, "-m", "roken", tool, str(out / "eval-shipped"), "--episode",
-                            "roken-n04-e00000-" + _first_map(out), "--out", str(out / name)], cwd=ROOT,
+                            f"{ROW}-n04-e00000-" + _first_map(out), "--out", str(out / name)], cwd=ROOT,
                            capture_output=True, text=True)
         if r.returncode == 0:
             figs.append(name)
     head = "| planner | episodes | full success | obs. coll. | inter coll. | connected | reach | length |"
     lines = ["# Roken quickstart", "", f"Tasks: {a.episodes} x 4 robots on unseen generated maps, the same for "
-             f"every row. Shipped model: `{SHIPPED.relative_to(ROOT)}`; brief run: `{out / 'pretrain'}`.", "",
+             f"every row. Shipped model: `{SHIPPED.relative_to(ROOT)}`, plain (`roken`, the paper's planner) and "
+             f"deployable (`{ROW}` with `{DEPLOY.relative_to(ROOT)}`; the episode figures are its first task); "
+             f"brief run: `{out / 'pretrain'}`.", "",
              head, "|" + "---|" * 8]
     for name, m in rows:
         length = "-" if m["length"] is None or m["length"] != m["length"] else f"{m['length']:.3f}"

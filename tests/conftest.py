@@ -15,6 +15,24 @@ def tc():
     return TaskConfig()
 
 
+@pytest.fixture(scope="module")
+def tiny():
+    """A random tiny Roken planner: it moves robots anywhere, which is what the execution, mask and driver tests
+    need (AdaLN-Zero starts at eps = 0, so the final layer is drawn at random to make the output non-trivial)."""
+    import torch
+
+    from roken.data.samples import SampleConfig
+    from roken.model.diffusion import DiffusionConfig, NoiseSchedule
+    from roken.model.dit import RokenDiT, preset
+    from roken.plan import RokenPlanner
+
+    torch.manual_seed(0)
+    model = RokenDiT(preset("tiny"))
+    for p in model.final.parameters():
+        torch.nn.init.normal_(p, std=0.5)
+    return RokenPlanner(model, NoiseSchedule(DiffusionConfig(num_steps=20)), SampleConfig(), "cpu")
+
+
 def open_map(size=60, canvas=None):
     """A free square with an obstacle border (1 cell)."""
     occ = np.zeros((size, size), np.uint8)

@@ -4,28 +4,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from roken.config import load_config
-from roken.data.samples import SampleConfig
 from roken.eval.harness import make_tasks
-from roken.model.diffusion import DiffusionConfig, NoiseSchedule
-from roken.model.dit import RokenDiT, preset
-from roken.plan import PlanConfig, RokenController, RokenPlanner, RokenRollout
+from roken.plan import PlanConfig, RokenController, RokenRollout
 from roken.plan.controller import rollout_config
 from roken.world.maps import generate_map
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture(scope="module")
-def tiny():
-    """A random tiny model (it moves robots anywhere): enough to compare two drivers of the same planner."""
-    torch.manual_seed(0)
-    model = RokenDiT(preset("tiny"))
-    for p in model.final.parameters():  # AdaLN-Zero starts at eps = 0; make the output non-trivial
-        torch.nn.init.normal_(p, std=0.5)
-    return RokenPlanner(model, NoiseSchedule(DiffusionConfig(num_steps=20)), SampleConfig(), "cpu")
 
 
 def test_a_team_driven_by_the_controller_replays_the_evaluation_episode(tiny):

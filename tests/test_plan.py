@@ -10,8 +10,6 @@ from roken.config import load_config
 from roken.data.condition import build_condition, sensed_cells
 from roken.data.samples import SampleConfig
 from roken.eval.harness import make_tasks
-from roken.model.diffusion import DiffusionConfig, NoiseSchedule
-from roken.model.dit import RokenDiT, preset
 from roken.plan import PlanConfig, RokenPlanner, RokenRollout
 from roken.plan.clusters import overlapping_clusters
 from roken.plan.select import choose, violations
@@ -19,16 +17,6 @@ from roken.world.geometry import pad_for_clearance
 from roken.world.maps import generate_map
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture(scope="module")
-def tiny():
-    """A random tiny model: it moves robots anywhere, which is what the execution and mask tests need."""
-    torch.manual_seed(0)
-    model = RokenDiT(preset("tiny"))
-    for p in model.final.parameters():  # AdaLN-Zero starts at eps = 0; make the output non-trivial
-        torch.nn.init.normal_(p, std=0.5)
-    return RokenPlanner(model, NoiseSchedule(DiffusionConfig(num_steps=20)), SampleConfig(), "cpu")
 
 
 def test_conditional_mode_returns_given_robots_exactly(tiny):
