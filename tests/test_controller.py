@@ -38,6 +38,30 @@ def test_a_team_driven_by_the_controller_replays_the_evaluation_episode(tiny):
         assert team.holds == ref[i][1]["holds"] and team.reached == ref[i][1]["reached"]
 
 
+def test_a_map_updated_as_the_robots_sense_it_gives_the_partial_observation_episode(tiny):
+    """A team that maps while it drives: the user passes the map as known after each re-plan's moves (cells within
+    12 m of a robot so far, the rest free) and gets the harness's partial-observation episode (plan.sensing_range
+    12, accumulate) step for step; only the step limit differs (the reference path on the map known at the start)."""
+    from roken.data.condition import known_occupancy, sensed_cells
+
+    cfg = load_config(ROOT / "configs/deploy.yaml", ["eval.episodes=2", "expert.step_limit_factor=0.1",
+                                                     "expert.step_limit_extra=40"])
+    gm = generate_map(cfg.map, "eval", 0)
+    (_, task), = make_tasks(cfg, [gm], 3)[0][:1]
+    pc = replace(rollout_config(cfg.plan, "roken+guided+geodesic"), device="cpu", guide_final_iters=5)
+    ro = RokenRollout(tiny, replace(pc, batch_size=1, sensing_range=12.0, accumulate=True), cfg.task, cfg.expert)
+    (_, ref, _), = ro.run([task], {gm.map_id: gm})
+    seen = sensed_cells(task.starts, 140, 12.0)
+    team = RokenController(tiny, pc, cfg.task, cfg.expert).start(known_occupancy(gm.occupancy, seen), task.starts,
+                                                                 task.leader, task.goal, seed=task.seed)
+    while not team.finished:
+        team.replan()
+        seen |= sensed_cells(team.step(), 140, 12.0)
+        team.update(occupancy=known_occupancy(gm.occupancy, seen))
+    m = min(len(ref), len(team.history))
+    assert m > 40 and np.array_equal(team.history[:m].astype(np.float32), ref[:m])
+
+
 def test_a_map_off_the_canvas_plans_and_updates_in_its_own_metres(tiny):
     """A 35 x 50 m map keeps its metres (centred on the 140 m canvas; with rescale=True it is scaled 2x as the map
     loaders fit maps): plans, positions and the history come back in the map's own metres, update() accepts where
@@ -64,6 +88,14 @@ def test_a_map_off_the_canvas_plans_and_updates_in_its_own_metres(tiny):
     steps = pos + np.linspace(0.6, 1.0, 3)[:, None, None]
     team.update(steps)  # every simulator step since
     assert team.history.shape == (1 + 8 + 3, 2, 2) and np.allclose(team.history[-3:], steps)
+    seen = occ.copy()
+    seen[10:14, 16:20] = 1  # a block the robots have just seen, ahead of them
+    before = team._slot.padded_known.copy()
+    team.update(team.positions, occupancy=seen)  # verified selection checks the next candidates on it
+    x, y = team.fit.to_canvas([17.5, 11.5]).astype(int)
+    assert team._slot.gm.occupancy[y, x] == 1 and not np.array_equal(team._slot.padded_known, before)
+    with pytest.raises(ValueError, match=r"the map of this team is \(35, 50\)"):
+        team.update(team.positions, occupancy=np.zeros((40, 50)))
     with pytest.raises(ValueError, match="150 x 150 m map is larger than the model's 140 x 140 m canvas"):
         ctl.start(np.zeros((150, 150)), pos, 0, (44, 30))
     far = np.array([[6.0, 6.0], [12.0, 6.0]])  # 3 m on the half-scale canvas: spacing holds there, not in the map
@@ -80,8 +112,11 @@ def test_the_controller_refuses_bad_inputs_naming_them(tiny):
         ctl.start(occ, pos, 0, (150, 100))
     with pytest.raises(ValueError, match=r"positions: \(n, 2\)"):
         ctl.start(occ, pos.ravel(), 0, (100, 100))
+    eleven = np.array([[40.0 + 3 * (i % 4), 40.0 + 3 * (i // 4)] for i in range(11)])
     with pytest.raises(ValueError, match="cluster-size"):
-        ctl.start(occ, np.random.default_rng(0).random((11, 2)) * 80 + 20, 0, (100, 100))
+        ctl.start(occ, eleven, 0, (100, 100))
+    clustered = RokenController(tiny, PlanConfig(device="cpu", cluster_size=4), load_config().task)
+    assert clustered.start(occ, eleven, 0, (100, 100)).replan().shape == (11, 16, 2)  # more robots than tokens
     blocked = occ.copy()
     blocked[39:42, 43:46] = 1  # robot 1 stands in a block: every verified candidate would fail at its start
     with pytest.raises(ValueError, match="start refused: robot 1 is .* from an obstacle .*d_obs_min=1 m"):

@@ -18,6 +18,7 @@ makes the plans `pipelines/evaluate.py` scores (a test replays an evaluation epi
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
@@ -46,7 +47,7 @@ class RokenController:
         self.rollout = RokenRollout(planner, plan, self.task, expert)
 
     @classmethod
-    def load(cls, checkpoint: str, config: str | None = None, row: str | None = None,
+    def load(cls, checkpoint: str | Path, config: str | Path | None = None, row: str | None = None,
              overrides: list[str] | tuple = (), device: str | None = None) -> "RokenController":
         """checkpoint: a checkpoint directory or run folder; config: a YAML whose plan / task / expert sections
         apply (e.g. configs/deploy.yaml; None: the defaults); row: the planner row (default: the config's first
@@ -89,7 +90,7 @@ class Team:
             raise ValueError(f"leader {leader}: the index of the robot given the goal, 0..{len(pos) - 1}")
         check(ctl.plan, ctl.planner, len(pos))  # a team larger than the model needs plan.cluster_size
         self.ctl, S = ctl, ctl.planner.cfg.canvas
-        self.fit = CanvasFit.of(occ, S, rescale=rescale)
+        self.fit, self.shape, self.rescale = CanvasFit.of(occ, S, rescale=rescale), occ.shape, rescale
         q, g = self.fit.to_canvas(pos), self.fit.to_canvas(np.reshape(goal, 2))
         for name, p in (("positions", q), ("goal", g[None])):
             if (p < 0).any() or (p >= S).any():
@@ -109,7 +110,7 @@ class Team:
     def replan(self) -> np.ndarray:
         """The next plan (n, H, 2) in the map's metres: the first plan.replan_every moves are the ones to drive."""
         s = self._slot
-        s.observe()  # partial observation (plan.sensing_range): what the team senses from where it stands
+        s.observe()  # plan.sensing_range > 0: what the team senses of the given map from where it stands
         holds = s.holds
         self._plan = self.ctl.rollout.plan_step([s])[0]
         self.held = s.holds > holds
@@ -123,10 +124,20 @@ class Team:
         self._slot.execute(self._plan)
         return self.positions
 
-    def update(self, positions) -> None:
+    def update(self, positions=None, occupancy: np.ndarray | None = None) -> None:
         """Where the robots are now: (n, 2), taken as reached in straight lines over the executed moves' simulator
-        steps (plan.replan_every x samples.interval), or (k, n, 2), every simulator step since the last call."""
+        steps (plan.replan_every x samples.interval), or (k, n, 2), every simulator step since the last call
+        (None: no move since, e.g. after step() in simulation).
+        occupancy: the map as the robots know it now (the shape given to start(); cells not yet seen as free, the
+        paper's partial observation), from the next re-plan on; the carried plan is kept and verified on it."""
         s, pc, cfg = self._slot, self.ctl.plan, self.ctl.planner.cfg
+        if occupancy is not None:
+            occ = np.asarray(occupancy)
+            if occ.shape != self.shape:
+                raise ValueError(f"occupancy: the map of this team is {self.shape}, got {occ.shape}")
+            s.use_map(GridMap("user", CanvasFit.of(occ, s.gm.shape[0], rescale=self.rescale).occupancy, "user"))
+        if positions is None:
+            return
         p = self.fit.to_canvas(positions)
         n = len(s.q)
         if p.shape == (n, 2):

@@ -38,7 +38,7 @@ SAMPLERS = ("ddim", "ddpm")
 @dataclass
 class CanvasFit:
     """A user's map fitted to the model's canvas the way the map loaders fit it (max-pooled down by an integer so
-    obstacles never vanish, or scaled up by one, then centred), and positions mapped between the two frames."""
+    obstacles never vanish, or scaled up by an integer, then centred), and positions mapped between the two frames."""
     occupancy: np.ndarray  # (S, S) uint8, the canvas the model and the closed loop see
     seen: np.ndarray | None  # (S, S) bool, the sensed cells on the canvas (None: the whole map is known)
     scale: float  # canvas metres per map metre

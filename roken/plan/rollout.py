@@ -336,17 +336,22 @@ class _Slot:
         self.reached = self.at_goal()  # a prefix may end at the goal already
         self.holds = 0  # re-plans where no candidate was clean and the team held position
         self.subgoal_left = 0  # re-plans left toward the sub-goal (plan.subgoal_after_hold)
+        self.use_map(gm)
+
+    def use_map(self, gm: GridMap) -> None:
+        """The map the team knows and what the goal terms read from it, built once per map (observe() rebuilds them
+        for a sensed one; RokenController.Team.update for a map the user's robots have updated)."""
+        pc, self.gm = self.ro.pc, gm
         self.padded_known = gm.padded
         self.geodesic = None
-        pc = ro.pc
-        # the free-space graph of the known map that the goal fields use: clearance-costed with plan.geo_inflate
-        # (built once here for the whole map; observe() rebuilds it for a sensed one), None = build a plain one
+        # the free-space graph of the known map that the goal fields use: clearance-costed with plan.geo_inflate,
+        # None = build a plain one
         uses = pc.guide or pc.select == "geodesic" or pc.subgoal > 0
         self.goal_graph = inflated_graph(gm.occupancy, pc.geo_inflate, pc.geo_inflate_weight) \
             if pc.geo_inflate > 0 and uses and not pc.sensing_range else gm.free_graph
         if (pc.select == "geodesic" or pc.subgoal > 0) and not pc.sensing_range:
-            self.geodesic = geodesic_field(gm.occupancy, task.goal, self.goal_graph)
-        self.fields = known_fields(gm.occupancy, task.goal, self.goal_graph) if pc.guide else None
+            self.geodesic = geodesic_field(gm.occupancy, self.task.goal, self.goal_graph)
+        self.fields = known_fields(gm.occupancy, self.task.goal, self.goal_graph) if pc.guide else None
 
     def generator(self, stage: int) -> torch.Generator:
         """The noise of this re-plan: the episode's running stream, or (plan.noise=episode) the same draw at every
