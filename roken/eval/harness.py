@@ -37,7 +37,7 @@ from ..world.grid import GridMap
 from ..world.loaders import MapError, find_map_files, load_map_file
 from ..world.maps import SPLITS, MapConfig, generate_map, split_size
 from ..world.tasks import TaskConfig, TaskError, sample_task
-from ..plan.controller import rollout_config
+from ..plan.controller import rollout_config, row_name
 from ..plan.rollout import PlanConfig
 from .folder import (episode_file, fingerprint, fingerprints, refuse_other_config, reuse, reuse_unit,  # noqa: F401
                      unit_file)
@@ -88,8 +88,7 @@ def planner_names(ec: EvalConfig, pc: PlanConfig | None = None) -> list[str]:
     """The rows of an evaluation: `roken` with plan.select set is named for its selection (roken+safe)."""
     names = [p.strip() for p in str(ec.planner).split(",") if p.strip()]
     if pc is not None and (pc.select != "none" or pc.guide):
-        tail = ("+guided" if pc.guide else "") + (f"+{pc.select}" if pc.select != "none" else "")
-        names = [f"roken{tail}" if p == "roken" else p for p in names]
+        names = [row_name(pc) if p == "roken" else p for p in names]
     return list(dict.fromkeys(names))
 
 

@@ -29,6 +29,11 @@ from .planner import CanvasFit, RokenPlanner
 from .rollout import PlanConfig, RokenRollout, _Slot, check
 
 
+def row_name(pc: PlanConfig) -> str:
+    """The row a plan section with `select` / `guide` set plays, named as evaluations name it (roken+guided+safe)."""
+    return "roken" + ("+guided" if pc.guide else "") + (f"+{pc.select}" if pc.select != "none" else "")
+
+
 def rollout_config(pc: PlanConfig, planner: str) -> PlanConfig:
     """The plan section for one row: plain `roken` uses one candidate, `roken+X` selects with X (`+guided`: guided
     sampling), e.g. `roken+guided+geodesic`."""
@@ -58,8 +63,7 @@ class RokenController:
         pc = cfg.plan if device is None else replace(cfg.plan, device=device)
         if row is None:
             rows = [p.strip() for p in str(cfg.eval.planner).split(",") if p.strip().startswith("roken")]
-            tail = ("+guided" if pc.guide else "") + (f"+{pc.select}" if pc.select != "none" else "")
-            row = rows[0] if rows else f"roken{tail}"
+            row = rows[0] if rows else row_name(pc)
         if not row.startswith("roken"):
             raise ValueError(f"row {row!r}: a Roken row, e.g. roken, roken+safe, roken+guided+geodesic")
         planner = RokenPlanner.load(checkpoint, pc.device, pc.dtype, pc.which, cfg.task.max_step)
